@@ -1,0 +1,128 @@
+"""Input encodings for radiance fields.
+
+* :class:`PositionalEncoding` is NeRF's (and AD-NeRF's) frequency encoding: ``[x, sin(2^k x),
+  cos(2^k x)]`` for ``k = 0 .. L-1``; 10 frequencies for positions, 4 for directions.
+* :class:`TriPlaneEncoding` is a fast learnable encoding in pure PyTorch: multi-resolution
+  feature planes on the xy, xz and yz planes of a box, bilinearly interpolated with
+  :func:`torch.nn.functional.grid_sample`. It trades the MLP's depth for memory and makes CPU
+  training practical.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = ["Encoding", "PositionalEncoding", "TriPlaneEncoding"]
+
+
+class Encoding(nn.Module):
+    """An encoding maps ``(..., in_dim)`` to ``(..., out_dim)``."""
+
+    in_dim: int
+    out_dim: int
+
+
+class PositionalEncoding(Encoding):
+    """NeRF frequency encoding.
+
+    Args:
+        in_dim: Input dimension (3 for points and directions).
+        n_frequencies: Number of octaves ``L``; frequencies ``2^0 .. 2^(L-1)`` (radians per unit).
+        include_input: Prepend the raw input, as NeRF does.
+    """
+
+    def __init__(self, in_dim: int = 3, n_frequencies: int = 10, include_input: bool = True) -> None:
+        super().__init__()
+        if n_frequencies < 0:
+            raise ValueError(f"n_frequencies must be >= 0; got {n_frequencies}")
+        self.in_dim = in_dim
+        self.n_frequencies = n_frequencies
+        self.include_input = include_input
+        self.register_buffer("freqs", 2.0 ** torch.arange(n_frequencies, dtype=torch.float64), persistent=False)
+        self.out_dim = in_dim * (int(include_input) + 2 * n_frequencies)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Encode ``x`` of shape ``(..., in_dim)`` to ``(..., out_dim)`` (NeRF's ordering)."""
+        parts = [x] if self.include_input else []
+        if self.n_frequencies:
+            scaled = x[..., None, :] * self.freqs.to(x)[:, None]  # (..., L, D)
+            # NeRF ordering: for each frequency, sin then cos of all D components.
+            parts.append(torch.stack([torch.sin(scaled), torch.cos(scaled)], dim=-2).reshape(*x.shape[:-1], -1))
+        return torch.cat(parts, dim=-1)
+
+
+class TriPlaneEncoding(Encoding):
+    """Multi-resolution tri-plane feature encoding.
+
+    Points are mapped from the box ``[aabb_min, aabb_max]`` to ``[-1, 1]^3``; for each level the
+    features of the xy, xz and yz planes are sampled bilinearly and concatenated, giving
+    ``out_dim = 3 * n_levels * channels``. Points outside the box read the border features.
+
+    Args:
+        aabb_min: Box minimum ``(3,)``.
+        aabb_max: Box maximum ``(3,)``.
+        n_levels: Number of resolutions, geometric from ``base_resolution`` to ``max_resolution``.
+        channels: Features per plane and level.
+        base_resolution: Coarsest plane resolution.
+        max_resolution: Finest plane resolution.
+        init_scale: Standard deviation of the initial features.
+    """
+
+    def __init__(
+        self,
+        aabb_min: Tensor | tuple[float, float, float] = (-1.0, -1.0, -1.0),
+        aabb_max: Tensor | tuple[float, float, float] = (1.0, 1.0, 1.0),
+        n_levels: int = 4,
+        channels: int = 8,
+        base_resolution: int = 16,
+        max_resolution: int = 128,
+        init_scale: float = 0.1,
+    ) -> None:
+        super().__init__()
+        if n_levels < 1 or channels < 1 or base_resolution < 2 or max_resolution < base_resolution:
+            raise ValueError("TriPlaneEncoding needs n_levels >= 1, channels >= 1 and 2 <= base_resolution <= max_resolution")
+        self.in_dim = 3
+        self.n_levels = n_levels
+        self.channels = channels
+        self.register_buffer("aabb_min", torch.as_tensor(aabb_min, dtype=torch.float32).clone())
+        self.register_buffer("aabb_max", torch.as_tensor(aabb_max, dtype=torch.float32).clone())
+        if n_levels == 1:
+            resolutions = [max_resolution]
+        else:
+            growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / (n_levels - 1))
+            resolutions = [int(round(base_resolution * growth**i)) for i in range(n_levels)]
+        self.resolutions = resolutions
+        self.planes = nn.ParameterList(
+            [nn.Parameter(init_scale * torch.randn(3, channels, r, r)) for r in resolutions]
+        )
+        self.out_dim = 3 * n_levels * channels
+
+    def normalize(self, x: Tensor) -> Tensor:
+        """Map points ``(..., 3)`` from the box to ``[-1, 1]^3``."""
+        lo = self.aabb_min.to(x)
+        hi = self.aabb_max.to(x)
+        return 2.0 * (x - lo) / (hi - lo) - 1.0
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Encode points ``(..., 3)`` to features ``(..., 3 * n_levels * channels)``."""
+        batch = x.shape[:-1]
+        p = self.normalize(x.reshape(-1, 3))
+        # Plane coordinates (grid_sample wants (x, y) = (width, height) order): xy, xz, yz.
+        coords = torch.stack([p[:, [0, 1]], p[:, [0, 2]], p[:, [1, 2]]], dim=0)  # (3, N, 2)
+        grid = coords[:, None]  # (3, 1, N, 2)
+        feats = []
+        for planes in self.planes:
+            sampled = F.grid_sample(planes.to(x.dtype), grid, mode="bilinear", padding_mode="border", align_corners=True)
+            feats.append(sampled[:, :, 0].permute(2, 0, 1).reshape(-1, 3 * self.channels))  # (N, 3C)
+        return torch.cat(feats, dim=-1).reshape(*batch, self.out_dim)
+
+    def total_variation(self) -> Tensor:
+        """Mean squared difference of neighbouring plane features (a smoothness regulariser)."""
+        tv = torch.zeros((), dtype=self.planes[0].dtype, device=self.planes[0].device)
+        for planes in self.planes:
+            tv = tv + (planes[..., 1:, :] - planes[..., :-1, :]).pow(2).mean() + (planes[..., :, 1:] - planes[..., :, :-1]).pow(2).mean()
+        return tv
