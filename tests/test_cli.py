@@ -1,0 +1,31 @@
+"""The adnerf command line."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from adnerf.cli import main
+
+
+def test_bench_render_json(capsys) -> None:
+    assert main(["bench", "render", "--json", "--samples", "4,8", "--size", "8", "--repeats", "1"]) == 0
+    captured = capsys.readouterr()
+    rows = [json.loads(line) for line in captured.out.splitlines()]
+    assert [(r["samples_per_ray"], r["method"]) for r in rows] == [(4, "stratified"), (4, "importance"), (8, "stratified"), (8, "importance")]
+    assert all(r["seconds_per_mrays"] > 0 and r["opacity_rel_err"] >= 0 for r in rows)
+    assert "opacity rel err" in captured.err  # the readable table goes to stderr
+
+
+def test_bench_render_table(capsys) -> None:
+    assert main(["bench", "render", "--samples", "4", "--size", "8", "--repeats", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "stratified" in out and "importance" in out and "s / Mray" in out
+
+
+def test_bad_arguments_give_clear_errors() -> None:
+    r = subprocess.run([sys.executable, "-m", "adnerf.cli", "bench", "render", "--samples", "4,x"], capture_output=True, text=True)
+    assert r.returncode == 2 and "comma-separated integers" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "adnerf.cli", "bench", "render", "--device", "tpu"], capture_output=True, text=True)
+    assert r.returncode == 2 and "unknown device" in r.stderr and "Traceback" not in r.stderr
