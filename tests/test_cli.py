@@ -29,3 +29,10 @@ def test_bad_arguments_give_clear_errors() -> None:
     assert r.returncode == 2 and "comma-separated integers" in r.stderr and "Traceback" not in r.stderr
     r = subprocess.run([sys.executable, "-m", "adnerf.cli", "bench", "render", "--device", "tpu"], capture_output=True, text=True)
     assert r.returncode == 2 and "unknown device" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_bench_features_json(capsys) -> None:
+    assert main(["bench", "features", "--seconds", "2", "--repeats", "1", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [r["kind"] for r in rows] == ["logmel", "phonemes"]
+    assert all(r["realtime_factor"] > 0 and r["audio_seconds"] == 2.0 for r in rows)

@@ -19,7 +19,7 @@ from .cameras import intrinsics_matrix, pixel_rays
 from .renderer import VolumeRenderer
 from .samplers import NearFarBounds
 
-__all__ = ["RenderBenchRow", "bench_render", "format_table"]
+__all__ = ["RenderBenchRow", "bench_features", "bench_render", "format_table"]
 
 DEFAULT_SAMPLES = (8, 16, 32, 64, 128, 256)
 
@@ -141,3 +141,41 @@ def format_table(rows: list[RenderBenchRow]) -> str:
 def rows_as_dicts(rows: list[RenderBenchRow]) -> list[dict]:
     """Rows as plain dicts (for JSON)."""
     return [asdict(r) for r in rows]
+
+
+def bench_features(media: str | None = None, seconds: float = 60.0, repeats: int = 2) -> list[dict]:
+    """Speech-feature extraction speed (seconds of audio per second of wall time) per extractor.
+
+    Args:
+        media: An audio or video file to use; ``None`` synthesises ``seconds`` of a vowel-like
+            harmonic signal with pauses at 16 kHz.
+        seconds: Length of the synthetic audio.
+        repeats: Timed repeats (the best is reported).
+
+    Returns:
+        One dict per extractor: ``kind``, ``audio_seconds``, ``wall_seconds``, ``realtime_factor``.
+    """
+    import numpy as np
+
+    from .features import FeatureSpec, extract_features
+    from .io import AudioTrack, read_audio
+
+    if media is not None:
+        audio = read_audio(media)
+    else:
+        sr = 16000
+        t = np.arange(int(seconds * sr)) / sr
+        f0 = 120 + 20 * np.sin(2 * np.pi * 0.5 * t)
+        voice = sum(np.sin(2 * np.pi * k * np.cumsum(f0) / sr) / k for k in range(1, 8))
+        gate = (np.sin(2 * np.pi * 0.8 * t) > -0.3).astype(np.float64)
+        audio = AudioTrack((0.1 * voice * gate).astype(np.float32), sr)
+    rows = []
+    for kind in ("logmel", "phonemes"):
+        extract_features(AudioTrack(audio.samples[: audio.sample_rate], audio.sample_rate), FeatureSpec(kind))  # warm up
+        best = float("inf")
+        for _ in range(max(1, repeats)):
+            start = time.perf_counter()
+            extract_features(audio, FeatureSpec(kind))
+            best = min(best, time.perf_counter() - start)
+        rows.append({"kind": kind, "audio_seconds": round(audio.duration, 3), "wall_seconds": best, "realtime_factor": audio.duration / best})
+    return rows

@@ -50,6 +50,65 @@ def _cmd_bench_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_features(args: argparse.Namespace) -> int:
+    from .bench import bench_features
+    from .io import MediaError
+
+    try:
+        rows = bench_features(args.media, seconds=args.seconds, repeats=args.repeats)
+    except MediaError as exc:
+        raise CliError(str(exc)) from exc
+    lines = [f"{'extractor':<10}  {'audio s':>8}  {'wall s':>7}  {'x real time':>11}"]
+    lines += [f"{r['kind']:<10}  {r['audio_seconds']:>8.1f}  {r['wall_seconds']:>7.2f}  {r['realtime_factor']:>11.1f}" for r in rows]
+    if args.json:
+        for r in rows:
+            print(json.dumps(r))
+        print("\n".join(lines), file=sys.stderr)
+    else:
+        print("\n".join(lines))
+    return 0
+
+
+def _cmd_features(args: argparse.Namespace) -> int:
+    import math
+    import os
+    from pathlib import Path
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from .features import MODEL_RATE, FeatureSpec, speech_windows
+    from .io import MediaError, frame_times, probe, read_audio
+
+    media, out = Path(args.media), Path(args.output)
+    if out.suffix != ".npy":
+        raise CliError(f"{out}: the output must be a .npy file")
+    try:
+        info = probe(media)
+        if not info["audio"]:
+            raise CliError(f"{media}: has no audio track; nothing to extract features from")
+        audio = read_audio(media)
+        if info["video"] and args.fps is None:
+            times = frame_times(media)
+            source = "video timestamps"
+        else:
+            fps = args.fps or 25.0
+            if fps <= 0:
+                raise CliError(f"--fps must be positive; got {fps}")
+            times = np.arange(max(1, math.ceil(audio.duration * fps))) / fps + audio.start
+            source = f"{fps:g} fps"
+        with tqdm(total=round(audio.duration, 1), unit="s", desc=f"{args.kind} features", disable=audio.duration < 30 or None) as bar:
+            windows = speech_windows(audio, times, FeatureSpec(args.kind), progress=lambda n: bar.update(round(n / MODEL_RATE, 2)))
+    except MediaError as exc:
+        raise CliError(str(exc)) from exc
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp{os.getpid()}.npy")
+    np.save(tmp, windows)
+    os.replace(tmp, out)
+    print(f"{out}: {windows.shape[0]} frames ({source}) x {windows.shape[1]} x {windows.shape[2]} {args.kind} features from {audio.duration:.2f} s of audio")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``adnerf`` command."""
     parser = argparse.ArgumentParser(prog="adnerf", description="Audio-driven neural radiance fields for talking heads.")
@@ -66,6 +125,19 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--dtype", default="float32", choices=("float32", "float64"))
     render.add_argument("--sigma", type=float, default=10.0, help="density of the analytic sphere (default 10: surface-like)")
     render.set_defaults(func=_cmd_bench_render)
+    fbench = bench_sub.add_parser("features", help="speech feature extraction speed (seconds of audio per second)")
+    fbench.add_argument("--media", default=None, help="audio/video file to use (default: 60 s of synthetic voiced audio)")
+    fbench.add_argument("--seconds", type=float, default=60.0, help="length of the synthetic audio")
+    fbench.add_argument("--repeats", type=int, default=2)
+    fbench.add_argument("--json", action="store_true", help="JSON lines on stdout, table on stderr")
+    fbench.set_defaults(func=_cmd_bench_features)
+
+    feats = sub.add_parser("features", help="per-frame speech feature windows (N, 16, D) of a video or audio file")
+    feats.add_argument("media", help="video (frames timed by its timestamps) or audio file (wav, mp3, m4a, flac, ...)")
+    feats.add_argument("-o", "--output", required=True, help="output .npy file")
+    feats.add_argument("--kind", choices=("phonemes", "logmel"), default="phonemes", help="extractor (default: phonemes, hama's IPA log-probs)")
+    feats.add_argument("--fps", type=float, default=None, help="frame rate for audio-only input (default 25); overrides a video's timestamps")
+    feats.set_defaults(func=_cmd_features)
     return parser
 
 

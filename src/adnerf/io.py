@@ -1,0 +1,309 @@
+"""Video and audio I/O on PyAV (FFmpeg), with timestamps rather than assumed frame rates.
+
+* :func:`read_video` decodes a video's frames (uint8 RGB), the exact presentation time of every
+  frame, and optionally its audio track (mono float32, resampled on request).
+* :func:`read_audio` decodes the audio of any file FFmpeg reads (wav, mp3, m4a, flac, mp4, ...).
+* :func:`write_video` encodes frames (h264) and an optional audio track (aac) into an mp4 with
+  audio sample 0 at the time of frame 0; it writes to a temporary file and renames it into
+  place, so a failure leaves nothing partial.
+
+Timing convention: all times are seconds on the container's clock. Audio is returned together
+with ``audio_start``, the time of its first sample; the AAC encoder's priming delay is removed
+by the decoder through the mp4 edit list, and any remaining offset shows up in ``audio_start``,
+which :mod:`adnerf.features` uses to align audio windows with frame timestamps.
+
+Every failure raises :class:`MediaError` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["AudioTrack", "MediaError", "Video", "frame_times", "probe", "read_audio", "read_video", "write_video"]
+
+
+class MediaError(RuntimeError):
+    """A media file could not be read or written; the message names the file and the problem."""
+
+
+def _av():
+    try:
+        import av
+    except ImportError as exc:  # pragma: no cover - av is a core dependency
+        raise MediaError("PyAV is not installed: pip install av") from exc
+    return av
+
+
+@dataclass
+class AudioTrack:
+    """Mono audio.
+
+    Attributes:
+        samples: float32 samples in ``[-1, 1]``, shape ``(n,)``.
+        sample_rate: Samples per second.
+        start: Time of the first sample in seconds (container clock; 0 for plain audio files).
+    """
+
+    samples: np.ndarray
+    sample_rate: int
+    start: float = 0.0
+
+    @property
+    def duration(self) -> float:
+        """Length in seconds."""
+        return len(self.samples) / self.sample_rate
+
+
+@dataclass
+class Video:
+    """A decoded video.
+
+    Attributes:
+        frames: uint8 RGB frames, shape ``(N, H, W, 3)``.
+        timestamps: Presentation time of each frame in seconds, shape ``(N,)``, increasing.
+        fps: Nominal frame rate reported by the container (informational: use ``timestamps``).
+        audio: The audio track, or ``None`` when the file has none or it was not requested.
+    """
+
+    frames: np.ndarray
+    timestamps: np.ndarray
+    fps: float
+    audio: AudioTrack | None
+
+
+def _open(path: str | Path):
+    av = _av()
+    p = Path(path)
+    if not p.exists():
+        raise MediaError(f"{p}: no such file")
+    if p.is_dir():
+        raise MediaError(f"{p}: is a directory, not a media file")
+    try:
+        return av.open(str(p))
+    except av.error.FFmpegError as exc:
+        raise MediaError(f"{p}: cannot open as media ({exc.strerror or exc})") from exc
+
+
+def probe(path: str | Path) -> dict:
+    """Stream summary of a media file: ``{"video": bool, "audio": bool, "fps": float|None, "duration": float|None}``."""
+    with _open(path) as container:
+        v = container.streams.video[0] if container.streams.video else None
+        a = container.streams.audio[0] if container.streams.audio else None
+        return {
+            "video": v is not None,
+            "audio": a is not None,
+            "fps": float(v.average_rate) if v is not None and v.average_rate else None,
+            "duration": float(container.duration / 1_000_000) if container.duration else None,
+            "sample_rate": a.rate if a is not None else None,
+        }
+
+
+def frame_times(path: str | Path) -> np.ndarray:
+    """Presentation times (seconds, sorted) of every video frame, read from packets without decoding.
+
+    Raises:
+        MediaError: The file is missing or unreadable, or has no video stream.
+    """
+    av = _av()
+    p = Path(path)
+    with _open(p) as container:
+        if not container.streams.video:
+            raise MediaError(f"{p}: has no video stream")
+        stream = container.streams.video[0]
+        times: list[float] = []
+        try:
+            for packet in container.demux(stream):
+                if packet.pts is not None and packet.size > 0:
+                    times.append(float(packet.pts * packet.time_base))
+        except av.error.FFmpegError as exc:
+            raise MediaError(f"{p}: cannot read the video stream ({exc.strerror or exc})") from exc
+    if not times:
+        raise MediaError(f"{p}: the video stream has no frames")
+    return np.sort(np.asarray(times, dtype=np.float64))
+
+
+def _decode_audio(path: Path, container, sample_rate: int | None) -> AudioTrack:
+    av = _av()
+    stream = container.streams.audio[0]
+    target_rate = int(sample_rate or stream.rate or 0)
+    if target_rate <= 0:
+        raise MediaError(f"{path}: audio stream has no sample rate")
+    # Keep the channels through the resampler and average them here: FFmpeg's own mono downmix
+    # scales each channel by 1/sqrt(2), which takes identical full-scale channels out of [-1, 1].
+    resampler = av.AudioResampler(format="fltp", layout=stream.layout.name, rate=target_rate)
+    chunks: list[np.ndarray] = []
+    start: float | None = None
+    try:
+        for frame in container.decode(stream):
+            if start is None:
+                start = float(frame.time) if frame.time is not None else 0.0
+            for out in resampler.resample(frame):
+                chunks.append(out.to_ndarray().mean(axis=0))
+        for out in resampler.resample(None):
+            chunks.append(out.to_ndarray().mean(axis=0))
+    except av.error.FFmpegError as exc:
+        raise MediaError(f"{path}: cannot decode the audio stream ({exc.strerror or exc})") from exc
+    samples = np.concatenate(chunks).astype(np.float32) if chunks else np.zeros(0, np.float32)
+    return AudioTrack(samples=samples, sample_rate=target_rate, start=start or 0.0)
+
+
+def read_audio(path: str | Path, sample_rate: int | None = None) -> AudioTrack:
+    """Decode the first audio stream of a file to mono float32.
+
+    Args:
+        path: Any file FFmpeg reads (wav, mp3, m4a, flac, mp4, ...).
+        sample_rate: Resample to this rate; ``None`` keeps the native rate.
+
+    Returns:
+        An :class:`AudioTrack`.
+
+    Raises:
+        MediaError: The file is missing, unreadable, has no audio stream, or cannot be decoded.
+    """
+    p = Path(path)
+    with _open(p) as container:
+        if not container.streams.audio:
+            raise MediaError(f"{p}: has no audio track")
+        return _decode_audio(p, container, sample_rate)
+
+
+def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None = None, max_frames: int | None = None) -> Video:
+    """Decode a video's frames with their timestamps, and optionally its audio.
+
+    Variable frame rate input is handled: each frame carries its own presentation time.
+
+    Args:
+        path: The video file.
+        audio: Also decode the audio track (``Video.audio`` is ``None`` when there is none).
+        audio_rate: Resample the audio to this rate; ``None`` keeps the native rate.
+        max_frames: Stop after this many frames.
+
+    Returns:
+        A :class:`Video`.
+
+    Raises:
+        MediaError: The file is missing, unreadable, has no video stream, or no frame decodes.
+    """
+    av = _av()
+    p = Path(path)
+    with _open(p) as container:
+        if not container.streams.video:
+            raise MediaError(f"{p}: has no video stream")
+        stream = container.streams.video[0]
+        fps = float(stream.average_rate) if stream.average_rate else 0.0
+        frames: list[np.ndarray] = []
+        times: list[float] = []
+        try:
+            for frame in container.decode(stream):
+                frames.append(frame.to_ndarray(format="rgb24"))
+                times.append(float(frame.time) if frame.time is not None else len(times) / (fps or 25.0))
+                if max_frames is not None and len(frames) >= max_frames:
+                    break
+        except av.error.FFmpegError as exc:
+            if not frames:
+                raise MediaError(f"{p}: cannot decode the video stream ({exc.strerror or exc})") from exc
+            raise MediaError(f"{p}: video is truncated or corrupt after frame {len(frames)} ({exc.strerror or exc})") from exc
+        if not frames:
+            raise MediaError(f"{p}: the video stream has no decodable frames")
+    track = None
+    if audio:
+        with _open(p) as container:
+            if container.streams.audio:
+                track = _decode_audio(p, container, audio_rate)
+    order = np.argsort(np.asarray(times), kind="stable")
+    return Video(
+        frames=np.stack([frames[i] for i in order]),
+        timestamps=np.asarray(times, dtype=np.float64)[order],
+        fps=fps,
+        audio=track,
+    )
+
+
+def write_video(
+    path: str | Path,
+    frames: np.ndarray,
+    fps: float,
+    audio: AudioTrack | np.ndarray | None = None,
+    sample_rate: int | None = None,
+    *,
+    crf: int = 18,
+) -> Path:
+    """Encode an mp4 (h264 yuv420p + aac mono) with audio aligned to the first frame.
+
+    Frames with odd width or height are padded by one replicated row / column (h264's 4:2:0
+    needs even sizes). Audio sample 0 plays at the time of frame 0.
+
+    Args:
+        path: Output ``.mp4`` path; written to a temporary file first, then renamed.
+        frames: uint8 RGB frames ``(N, H, W, 3)`` (or float in ``[0, 1]``, converted).
+        fps: Frame rate (may be fractional, e.g. 29.97).
+        audio: Mono samples ``(n,)`` (float in ``[-1, 1]``) or an :class:`AudioTrack`; ``None``
+            writes a silent video.
+        sample_rate: Rate of ``audio`` when it is an array.
+        crf: h264 quality (lower is better; 18 is visually lossless).
+
+    Returns:
+        The written path.
+
+    Raises:
+        MediaError: Invalid frames or audio, or the encoder failed.
+    """
+    av = _av()
+    out = Path(path)
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] == 0:
+        raise MediaError(f"{out}: frames must have shape (N, H, W, 3) with N >= 1; got {frames.shape}")
+    if frames.dtype != np.uint8:
+        frames = (np.clip(frames, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    if frames.shape[1] % 2 or frames.shape[2] % 2:
+        frames = np.pad(frames, ((0, 0), (0, frames.shape[1] % 2), (0, frames.shape[2] % 2), (0, 0)), mode="edge")
+    if not fps or fps <= 0:
+        raise MediaError(f"{out}: fps must be positive; got {fps}")
+    if isinstance(audio, AudioTrack):
+        sample_rate, audio = audio.sample_rate, audio.samples
+    if audio is not None:
+        audio = np.asarray(audio, dtype=np.float32).reshape(-1)
+        if not sample_rate or sample_rate <= 0:
+            raise MediaError(f"{out}: audio given without a positive sample_rate")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(suffix=".mp4", prefix=f".{out.stem}.", dir=out.parent)
+    os.close(fd)
+    rate = Fraction(fps).limit_denominator(1001)
+    try:
+        with av.open(tmp_name, "w", format="mp4") as container:
+            v = container.add_stream("libx264", rate=rate)
+            v.width, v.height = frames.shape[2], frames.shape[1]
+            v.pix_fmt = "yuv420p"
+            v.options = {"crf": str(crf)}
+            a = None
+            if audio is not None:
+                a = container.add_stream("aac", rate=int(sample_rate))
+                a.layout = "mono"
+            for i, img in enumerate(frames):
+                vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+                vf.pts = i
+                vf.time_base = Fraction(1, 1) / rate
+                container.mux(v.encode(vf))
+            container.mux(v.encode())
+            if a is not None:
+                block = 1024
+                for s in range(0, len(audio), block):
+                    af = av.AudioFrame.from_ndarray(np.ascontiguousarray(audio[None, s : s + block]), format="flt", layout="mono")
+                    af.sample_rate = int(sample_rate)
+                    af.pts = s
+                    af.time_base = Fraction(1, int(sample_rate))
+                    container.mux(a.encode(af))
+                container.mux(a.encode())
+        os.replace(tmp_name, out)
+    except Exception as exc:
+        Path(tmp_name).unlink(missing_ok=True)
+        if isinstance(exc, MediaError):
+            raise
+        raise MediaError(f"{out}: writing the video failed ({exc})") from exc
+    return out
