@@ -284,3 +284,11 @@ def test_cli_features(tmp_path: Path, capsys) -> None:
     assert r.returncode == 2 and "has no audio track" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "none.npy").exists()
     assert Fraction(30000, 1001) == Fraction(30000 / 1001).limit_denominator(1001)
+
+
+def test_audio_only_file_is_not_a_video(tmp_path: Path) -> None:
+    wav = _write_wav(tmp_path / "only.wav", _burst_audio(0.1, 0.5), SR)
+    with pytest.raises(MediaError, match="only.wav: has no video stream"):
+        read_video(wav)
+    with pytest.raises(MediaError, match="only.wav: has no video stream"):
+        frame_times(wav)

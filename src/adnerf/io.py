@@ -104,6 +104,13 @@ def probe(path: str | Path) -> dict:
         }
 
 
+def _video_stream(path: Path, container):
+    """The first video stream of an open container, or a MediaError naming the file."""
+    if not container.streams.video:
+        raise MediaError(f"{path}: has no video stream")
+    return container.streams.video[0]
+
+
 def frame_times(path: str | Path) -> np.ndarray:
     """Presentation times (seconds, sorted) of every video frame, read from packets without decoding.
 
@@ -113,9 +120,7 @@ def frame_times(path: str | Path) -> np.ndarray:
     av = _av()
     p = Path(path)
     with _open(p) as container:
-        if not container.streams.video:
-            raise MediaError(f"{p}: has no video stream")
-        stream = container.streams.video[0]
+        stream = _video_stream(p, container)
         times: list[float] = []
         try:
             for packet in container.demux(stream):
@@ -193,9 +198,7 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
     av = _av()
     p = Path(path)
     with _open(p) as container:
-        if not container.streams.video:
-            raise MediaError(f"{p}: has no video stream")
-        stream = container.streams.video[0]
+        stream = _video_stream(p, container)
         fps = float(stream.average_rate) if stream.average_rate else 0.0
         frames: list[np.ndarray] = []
         times: list[float] = []
