@@ -292,3 +292,43 @@ def test_audio_only_file_is_not_a_video(tmp_path: Path) -> None:
         read_video(wav)
     with pytest.raises(MediaError, match="only.wav: has no video stream"):
         frame_times(wav)
+
+
+@pytest.mark.parametrize("family", ["wav2vec2", "hubert"])
+def test_local_transformers_model_round_trip(tmp_path: Path, family: str) -> None:
+    transformers = pytest.importorskip("transformers")
+    common = dict(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32, conv_dim=(8,) * 7,
+                  num_conv_pos_embeddings=16, num_conv_pos_embedding_groups=2)
+    if family == "wav2vec2":
+        model = transformers.Wav2Vec2Model(transformers.Wav2Vec2Config(**common))
+    else:
+        model = transformers.HubertModel(transformers.HubertConfig(**common))
+    model.save_pretrained(tmp_path / "model")
+    audio = AudioTrack(_burst_audio(0.7, 1.5), SR)
+    times = np.arange(30) / 25
+    spec = F.FeatureSpec("wav2vec2", model_dir=str(tmp_path / "model"))
+    windows = F.speech_windows(audio, times, spec)
+    assert windows.shape == (30, 16, 16) and np.isfinite(windows).all()
+    # The loaded model computes what the saved one does (same weights through the loader).
+    x = F._resample(audio, F.MODEL_RATE)
+    ours = F.hidden_states(x, str(tmp_path / "model"))
+    assert ours.shape == (len(x) // 320 + 1, 16)
+    xn = torch.from_numpy(x)
+    xn = torch.nn.functional.pad((xn - xn.mean()) / torch.sqrt(xn.var(unbiased=False) + 1e-7), (200, 200))
+    with torch.no_grad():
+        direct = model.eval()(xn[None]).last_hidden_state[0].numpy()
+    np.testing.assert_allclose(ours, direct, rtol=1e-4, atol=1e-4)
+    codes = AudioNet(in_dim=16)(torch.from_numpy(windows))
+    assert codes.shape == (30, 64)
+
+
+def test_wav2vec2_needs_a_local_model(tmp_path: Path) -> None:
+    audio = AudioTrack(np.zeros(SR, np.float32), SR)
+    with pytest.raises(F.FeatureError, match="model-dir"):
+        F.extract_features(audio, F.FeatureSpec("wav2vec2"))
+    with pytest.raises(F.FeatureError, match="no config.json"):
+        F.extract_features(audio, F.FeatureSpec("wav2vec2", model_dir=str(tmp_path)))
+    wav = _write_wav(tmp_path / "a.wav", np.zeros(SR), SR)
+    r = subprocess.run([sys.executable, "-m", "adnerf.cli", "features", str(wav), "-o", str(tmp_path / "w.npy"), "--kind", "wav2vec2", "--model-dir", str(tmp_path / "nope")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "no config.json" in r.stderr and "Traceback" not in r.stderr

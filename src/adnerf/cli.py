@@ -77,7 +77,7 @@ def _cmd_features(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from .features import MODEL_RATE, FeatureSpec, speech_windows
+    from .features import MODEL_RATE, FeatureError, FeatureSpec, speech_windows
     from .io import MediaError, frame_times, probe, read_audio
 
     media, out = Path(args.media), Path(args.output)
@@ -98,8 +98,9 @@ def _cmd_features(args: argparse.Namespace) -> int:
             times = np.arange(max(1, math.ceil(audio.duration * fps))) / fps + audio.start
             source = f"{fps:g} fps"
         with tqdm(total=round(audio.duration, 1), unit="s", desc=f"{args.kind} features", disable=audio.duration < 30 or None) as bar:
-            windows = speech_windows(audio, times, FeatureSpec(args.kind), progress=lambda n: bar.update(round(n / MODEL_RATE, 2)))
-    except MediaError as exc:
+            spec = FeatureSpec(args.kind, model_dir=args.model_dir)
+            windows = speech_windows(audio, times, spec, progress=lambda n: bar.update(round(n / MODEL_RATE, 2)))
+    except (MediaError, FeatureError) as exc:
         raise CliError(str(exc)) from exc
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.tmp{os.getpid()}.npy")
@@ -135,7 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
     feats = sub.add_parser("features", help="per-frame speech feature windows (N, 16, D) of a video or audio file")
     feats.add_argument("media", help="video (frames timed by its timestamps) or audio file (wav, mp3, m4a, flac, ...)")
     feats.add_argument("-o", "--output", required=True, help="output .npy file")
-    feats.add_argument("--kind", choices=("phonemes", "logmel"), default="phonemes", help="extractor (default: phonemes, hama's IPA log-probs)")
+    feats.add_argument("--kind", choices=("phonemes", "logmel", "wav2vec2"), default="phonemes", help="extractor (default: phonemes, hama's IPA log-probs)")
+    feats.add_argument("--model-dir", default=None, help="local wav2vec2 / HuBERT model directory for --kind wav2vec2")
     feats.add_argument("--fps", type=float, default=None, help="frame rate for audio-only input (default 25); overrides a video's timestamps")
     feats.set_defaults(func=_cmd_features)
     return parser

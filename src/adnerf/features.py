@@ -7,6 +7,8 @@ each video frame. The extractors here produce features at 50 Hz too:
   it works offline) gives 191 IPA log-probabilities per 20 ms, the same rate and role as
   DeepSpeech's 29 character logits.
 * ``logmel``: an 80-band log-mel filterbank (25 ms windows, 20 ms hop); no model at all.
+* ``wav2vec2``: hidden states of a wav2vec2 / HuBERT model from a *local* directory (optional
+  extra ``adnerf[wav2vec2]``; nothing is downloaded).
 * ``npy``: precomputed windows, e.g. AD-NeRF's ``aud.npy`` ``(N, 16, 29)``.
 
 Alignment is by timestamps: feature ``k`` of an extractor describes the audio around
@@ -36,10 +38,12 @@ from .io import AudioTrack, MediaError
 
 __all__ = [
     "FEATURE_RATE",
+    "FeatureError",
     "WINDOW",
     "FeatureSpec",
     "extract_features",
     "frame_windows",
+    "hidden_states",
     "load_npy_windows",
     "logmel",
     "phoneme_logprobs",
@@ -52,22 +56,24 @@ MODEL_RATE = 16000  # the extractors' working sample rate
 HOP = int(MODEL_RATE / FEATURE_RATE)  # 320 samples
 
 
+class FeatureError(RuntimeError):
+    """A feature extractor cannot run (missing package or model); the message says what to do."""
+
+
 @dataclass(frozen=True)
 class FeatureSpec:
     """Which extractor and its settings (part of the cache key).
 
     Attributes:
-        kind: ``"phonemes"`` or ``"logmel"``.
+        kind: ``"phonemes"``, ``"logmel"`` or ``"wav2vec2"`` (any wav2vec2 / HuBERT model that
+            ``transformers.AutoModel`` loads from ``model_dir``).
         n_mels: Mel bands of ``logmel``.
+        model_dir: Local model directory of ``wav2vec2`` (never downloaded).
     """
 
-    kind: Literal["phonemes", "logmel"] = "phonemes"
+    kind: Literal["phonemes", "logmel", "wav2vec2"] = "phonemes"
     n_mels: int = 80
-
-    @property
-    def dim(self) -> int:
-        """Feature width ``D``."""
-        return 191 if self.kind == "phonemes" else self.n_mels
+    model_dir: str | None = None
 
 
 def _resample(audio: AudioTrack, rate: int) -> np.ndarray:
@@ -130,6 +136,30 @@ def _hama_model():
     return _HAMA_MODEL
 
 
+def _chunked(samples: np.ndarray, run: Callable[[np.ndarray], np.ndarray], chunk_seconds: float, context_seconds: float, progress: Callable[[int], None] | None) -> np.ndarray:
+    """Apply a 50 Hz frame model in chunks with context; ``run(piece)`` returns ``(len // 320 + 1, D)``."""
+    n_out = len(samples) // HOP + 1
+    chunk = max(1, int(chunk_seconds * FEATURE_RATE)) * HOP
+    ctx = int(context_seconds * FEATURE_RATE) * HOP
+    parts: list[np.ndarray] = []
+    for start in range(0, max(len(samples), 1), chunk):
+        lo = max(0, start - ctx)
+        hi = min(len(samples), start + chunk + ctx)
+        piece = np.ascontiguousarray(samples[lo:hi], dtype=np.float32)
+        if piece.size == 0:
+            piece = np.zeros(HOP, np.float32)
+        frames = run(piece)
+        first = (start - lo) // HOP
+        own = min(chunk // HOP, n_out - start // HOP)
+        parts.append(frames[first : first + own])
+        if progress is not None:
+            progress(min(chunk, len(samples) - start))
+    out = np.concatenate(parts, axis=0).astype(np.float32)
+    if out.shape[0] < n_out:  # pad a short tail by its edge frame
+        out = np.concatenate([out, np.repeat(out[-1:], n_out - out.shape[0], axis=0)])
+    return out[:n_out]
+
+
 def phoneme_logprobs(samples: np.ndarray, *, chunk_seconds: float = 20.0, context_seconds: float = 2.0, progress: Callable[[int], None] | None = None) -> np.ndarray:
     """hama's per-frame IPA log-probabilities of 16 kHz mono audio, ``(T, 191)``, 20 ms apart.
 
@@ -146,30 +176,59 @@ def phoneme_logprobs(samples: np.ndarray, *, chunk_seconds: float = 20.0, contex
         progress: Called with the number of samples finished after each chunk.
     """
     model = _hama_model()
-    n_out = len(samples) // HOP + 1
-    chunk = int(chunk_seconds * FEATURE_RATE) * HOP
-    ctx = int(context_seconds * FEATURE_RATE) * HOP
-    parts: list[np.ndarray] = []
-    for start in range(0, max(len(samples), 1), chunk):
-        lo = max(0, start - ctx)
-        hi = min(len(samples), start + chunk + ctx)
-        piece = np.ascontiguousarray(samples[lo:hi], dtype=np.float32)
-        if piece.size == 0:
-            piece = np.zeros(HOP, np.float32)
+
+    def run(piece: np.ndarray) -> np.ndarray:
         log_probs, lengths = model.session.run(
             [model._log_probs_output_name, model._out_lengths_output_name],
             {model._waveform_input_name: piece[None], model._waveform_lengths_input_name: np.array([piece.size], dtype=np.int64)},
         )
-        lp = np.asarray(log_probs)[0, : int(np.asarray(lengths).reshape(-1)[0])]
-        first = (start - lo) // HOP
-        own = min(chunk // HOP, n_out - start // HOP)
-        parts.append(lp[first : first + own])
-        if progress is not None:
-            progress(min(chunk, len(samples) - start))
-    out = np.concatenate(parts, axis=0).astype(np.float32)
-    if out.shape[0] < n_out:  # the model emits n // 320 + 1 frames; pad a short tail by its edge
-        out = np.concatenate([out, np.repeat(out[-1:], n_out - out.shape[0], axis=0)])
-    return out[:n_out]
+        return np.asarray(log_probs)[0, : int(np.asarray(lengths).reshape(-1)[0])]
+
+    return _chunked(samples, run, chunk_seconds, context_seconds, progress)
+
+
+_HF_MODELS: dict[str, object] = {}
+
+
+def _hf_model(model_dir: str | None):
+    if not model_dir:
+        raise FeatureError("the 'wav2vec2' extractor needs a local model directory (--model-dir DIR)")
+    path = Path(model_dir)
+    if not (path / "config.json").exists():
+        raise FeatureError(f"{path}: not a transformers model directory (no config.json)")
+    key = str(path.resolve())
+    if key not in _HF_MODELS:
+        try:
+            from transformers import AutoModel
+        except ImportError as exc:
+            raise FeatureError("the 'wav2vec2' extractor needs transformers: pip install 'adnerf[wav2vec2]'") from exc
+        try:
+            model = AutoModel.from_pretrained(str(path), local_files_only=True)
+        except (OSError, ValueError) as exc:
+            raise FeatureError(f"{path}: cannot load the model ({exc})") from exc
+        _HF_MODELS[key] = model.eval()
+    return _HF_MODELS[key]
+
+
+def hidden_states(samples: np.ndarray, model_dir: str, *, chunk_seconds: float = 20.0, context_seconds: float = 2.0, progress: Callable[[int], None] | None = None) -> np.ndarray:
+    """Last hidden states of a local wav2vec2 / HuBERT model for 16 kHz audio, ``(T, hidden)``.
+
+    Their convolutional front end has a 400-sample receptive field and a 320-sample stride; the
+    waveform is normalised (zero mean, unit variance, as their feature extractors do) and padded
+    by 200 samples on each side so that frame ``k`` is centred at ``k * 20 ms`` like the other
+    extractors.
+    """
+    model = _hf_model(model_dir)
+
+    def run(piece: np.ndarray) -> np.ndarray:
+        x = torch.from_numpy(piece)
+        x = (x - x.mean()) / torch.sqrt(x.var(unbiased=False) + 1e-7)
+        x = torch.nn.functional.pad(x, (HOP * 5 // 8, HOP * 5 // 8))  # 200 samples each side
+        with torch.no_grad():
+            out = model(x[None].to(next(model.parameters()).dtype)).last_hidden_state[0]
+        return out.float().numpy()
+
+    return _chunked(samples, run, chunk_seconds, context_seconds, progress)
 
 
 def extract_features(audio: AudioTrack, spec: FeatureSpec = FeatureSpec(), progress: Callable[[int], None] | None = None) -> np.ndarray:
@@ -182,7 +241,9 @@ def extract_features(audio: AudioTrack, spec: FeatureSpec = FeatureSpec(), progr
         return out
     if spec.kind == "phonemes":
         return phoneme_logprobs(samples, progress=progress)
-    raise ValueError(f"unknown feature kind {spec.kind!r}; choose phonemes or logmel")
+    if spec.kind == "wav2vec2":
+        return hidden_states(samples, spec.model_dir or "", progress=progress)
+    raise ValueError(f"unknown feature kind {spec.kind!r}; choose phonemes, logmel or wav2vec2")
 
 
 def frame_windows(features: np.ndarray, frame_times: np.ndarray, *, feature_start: float = 0.0, rate: float = FEATURE_RATE, window: int = WINDOW) -> np.ndarray:
@@ -210,7 +271,8 @@ def _cache_key(audio: AudioTrack, frame_times: np.ndarray, spec: FeatureSpec) ->
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(audio.samples, dtype=np.float32).tobytes())
     h.update(np.ascontiguousarray(frame_times, dtype=np.float64).tobytes())
-    h.update(json.dumps({"rate": audio.sample_rate, "start": audio.start, "kind": spec.kind, "n_mels": spec.n_mels, "v": 1}).encode())
+    model = str(Path(spec.model_dir).resolve()) if spec.model_dir else None
+    h.update(json.dumps({"rate": audio.sample_rate, "start": audio.start, "kind": spec.kind, "n_mels": spec.n_mels, "model": model, "v": 1}).encode())
     return h.hexdigest()[:20]
 
 
