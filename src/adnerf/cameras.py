@@ -20,6 +20,7 @@ import torch
 from kornia.geometry.camera import PinholeCamera, project_points, unproject_points
 from torch import Tensor
 
+from .pose import HeadPose
 from .rays import RayBundle
 
 __all__ = ["Camera", "intrinsics_matrix", "pixel_centers", "pixel_rays", "rays_through_pixels"]
@@ -139,11 +140,7 @@ class Camera:
         """World-to-camera transform, shape ``(4, 4)``; the rigid inverse of ``cam_to_world``."""
         if self.cam_to_world is None:
             return torch.eye(4, dtype=self.K.dtype, device=self.K.device)
-        R, t = self.cam_to_world[:3, :3], self.cam_to_world[:3, 3]
-        out = torch.eye(4, dtype=self.cam_to_world.dtype, device=self.cam_to_world.device)
-        out[:3, :3] = R.T
-        out[:3, 3] = -R.T @ t
-        return out
+        return HeadPose.from_matrix(self.cam_to_world).inverse().matrix()
 
     def rays(self) -> RayBundle:
         """Rays through every pixel centre, shape ``(height, width, 3)``."""
