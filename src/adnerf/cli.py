@@ -34,19 +34,23 @@ def _device(name: str) -> str:
     return name
 
 
+def _emit(rows: list[dict], table: str, as_json: bool) -> None:
+    """Benchmark output: JSON lines on stdout and the table on stderr, or the table alone on stdout."""
+    if as_json:
+        for row in rows:
+            print(json.dumps(row), flush=True)
+        print(table, file=sys.stderr)
+    else:
+        print(table)
+
+
 def _cmd_bench_render(args: argparse.Namespace) -> int:
     import torch
 
     from .bench import bench_render, format_table, rows_as_dicts
 
     rows = bench_render(args.samples, size=args.size, repeats=args.repeats, device=_device(args.device), dtype=getattr(torch, args.dtype), sigma=args.sigma)
-    table = format_table(rows)
-    if args.json:
-        for row in rows_as_dicts(rows):
-            print(json.dumps(row), flush=True)
-        print(table, file=sys.stderr)
-    else:
-        print(table)
+    _emit(rows_as_dicts(rows), format_table(rows), args.json)
     return 0
 
 
@@ -60,35 +64,26 @@ def _cmd_bench_features(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from exc
     lines = [f"{'extractor':<10}  {'audio s':>8}  {'wall s':>7}  {'x real time':>11}"]
     lines += [f"{r['kind']:<10}  {r['audio_seconds']:>8.1f}  {r['wall_seconds']:>7.2f}  {r['realtime_factor']:>11.1f}" for r in rows]
-    if args.json:
-        for r in rows:
-            print(json.dumps(r))
-        print("\n".join(lines), file=sys.stderr)
-    else:
-        print("\n".join(lines))
+    _emit(rows, "\n".join(lines), args.json)
     return 0
 
 
 def _cmd_features(args: argparse.Namespace) -> int:
     import math
-    import os
     from pathlib import Path
 
     import numpy as np
     from tqdm import tqdm
 
-    from .features import MODEL_RATE, FeatureError, FeatureSpec, speech_windows
+    from .features import MODEL_RATE, FeatureError, FeatureSpec, save_npy_atomic, speech_windows
     from .io import MediaError, frame_times, probe, read_audio
 
     media, out = Path(args.media), Path(args.output)
     if out.suffix != ".npy":
         raise CliError(f"{out}: the output must be a .npy file")
     try:
-        info = probe(media)
-        if not info["audio"]:
-            raise CliError(f"{media}: has no audio track; nothing to extract features from")
-        audio = read_audio(media)
-        if info["video"] and args.fps is None:
+        audio = read_audio(media)  # raises "has no audio track" itself
+        if args.fps is None and probe(media)["video"]:
             times = frame_times(media)
             source = "video timestamps"
         else:
@@ -102,10 +97,7 @@ def _cmd_features(args: argparse.Namespace) -> int:
             windows = speech_windows(audio, times, spec, progress=lambda n: bar.update(round(n / MODEL_RATE, 2)))
     except (MediaError, FeatureError) as exc:
         raise CliError(str(exc)) from exc
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.tmp{os.getpid()}.npy")
-    np.save(tmp, windows)
-    os.replace(tmp, out)
+    save_npy_atomic(out, windows)
     print(f"{out}: {windows.shape[0]} frames ({source}) x {windows.shape[1]} x {windows.shape[2]} {args.kind} features from {audio.duration:.2f} s of audio")
     return 0
 

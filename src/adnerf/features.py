@@ -45,6 +45,7 @@ __all__ = [
     "frame_windows",
     "hidden_states",
     "load_npy_windows",
+    "save_npy_atomic",
     "logmel",
     "phoneme_logprobs",
     "speech_windows",
@@ -316,11 +317,24 @@ def speech_windows(
     feats = extract_features(padded, spec, progress)
     windows = frame_windows(feats, frame_times, feature_start=padded.start)
     if cache_file is not None:
-        cache_file.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache_file.with_suffix(f".tmp{os.getpid()}.npy")
-        np.save(tmp, windows)
-        os.replace(tmp, cache_file)
+        save_npy_atomic(cache_file, windows)
     return windows
+
+
+def save_npy_atomic(path: str | Path, array: np.ndarray) -> Path:
+    """Write ``array`` to ``path`` (.npy) through a temporary file renamed into place.
+
+    A reader never sees a half-written file, and a failure leaves no file at ``path``.
+    """
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp{os.getpid()}.npy")
+    try:
+        np.save(tmp, array)
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out
 
 
 def load_npy_windows(path: str | Path, n_frames: int | None = None) -> np.ndarray:
