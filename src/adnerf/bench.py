@@ -87,6 +87,8 @@ def bench_render(
     sphere = UniformSphere(torch.tensor([0.0, 0.0, 3.0], dtype=dtype, device=dev), 1.0, sigma)
     truth_opacity, truth_depth, hit = sphere.truth(rays.origins.double(), rays.directions.double())
     bounds = NearFarBounds(1.0, 5.0)
+    with torch.no_grad():  # one untimed render: first-call start-up must not count against row one
+        VolumeRenderer(bounds, n_coarse=8, n_fine=8).render_chunked(rays[:chunk], sphere, chunk=chunk)
     rows = []
     for n in samples:
         for method in ("stratified", "importance"):
