@@ -88,7 +88,8 @@ def composite(
             (the returned colour is then premultiplied and can be layered with :func:`over`).
 
     Returns:
-        A :class:`Composite`.
+        A :class:`Composite` in the promoted dtype of the inputs (float64 intervals with
+        float32 field outputs composite in float64).
     """
     if colors.shape[:-1] != densities.shape:
         raise ValueError(f"colors (..., S, C) and densities (..., S) disagree: {tuple(colors.shape)} vs {tuple(densities.shape)}")
@@ -96,7 +97,7 @@ def composite(
     weights, residual = render_weights(densities, deltas)
     total_tau = (densities * deltas).sum(dim=-1)
     opacity = -torch.expm1(-total_tau)
-    rgb = torch.einsum("...s,...sc->...c", weights, colors)
+    rgb = torch.einsum("...s,...sc->...c", weights, colors.to(weights.dtype))
     if background is not None:
         rgb = rgb + residual[..., None] * background
     t_mids = 0.5 * (t_starts + t_ends)

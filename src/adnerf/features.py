@@ -26,7 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
@@ -34,6 +33,7 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
+from .atomic import atomic_path
 from .io import AudioTrack, MediaError
 
 __all__ = [
@@ -326,15 +326,9 @@ def save_npy_atomic(path: str | Path, array: np.ndarray) -> Path:
 
     A reader never sees a half-written file, and a failure leaves no file at ``path``.
     """
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.tmp{os.getpid()}.npy")
-    try:
+    with atomic_path(path) as tmp:
         np.save(tmp, array)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return out
+    return Path(path)
 
 
 def load_npy_windows(path: str | Path, n_frames: int | None = None) -> np.ndarray:

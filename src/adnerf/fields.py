@@ -93,15 +93,19 @@ class FieldConfig:
     @staticmethod
     def from_dict(d: dict) -> "FieldConfig":
         """Inverse of :meth:`to_dict`; unknown keys are an error."""
-        known = set(FieldConfig.__dataclass_fields__)
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown field config keys: {sorted(unknown)}")
+        check_config_keys(d, FieldConfig, "field config")
         d = dict(d)
         for key in ("skips", "aabb_min", "aabb_max"):
             if key in d:
                 d[key] = tuple(d[key])
         return FieldConfig(**d)
+
+
+def check_config_keys(d: dict, cls: type, what: str) -> None:
+    """Raise ``ValueError`` naming the keys of ``d`` that are not fields of the dataclass ``cls``."""
+    unknown = set(d) - set(cls.__dataclass_fields__)
+    if unknown:
+        raise ValueError(f"unknown {what} keys: {sorted(unknown)}")
 
 
 def paper_config(cond_dim: int = 64) -> FieldConfig:
@@ -188,19 +192,28 @@ class RadianceField(nn.Module):
         cfg = self.config
         batch = positions.shape[:-1]
         h_in = self.position_encoding(positions)
+        shared: Tensor | None = None  # one condition for every point: folded into the layer biases
         if cfg.cond_dim:
             if condition is None:
                 raise ValueError(f"this field is conditioned ({cfg.cond_dim}-d) but no condition was given")
             if condition.shape[-1] != cfg.cond_dim:
                 raise ValueError(f"condition must have {cfg.cond_dim} features; got shape {tuple(condition.shape)}")
-            h_in = torch.cat([h_in, condition.to(h_in).expand(*batch, cfg.cond_dim)], dim=-1)
+            if condition.dim() == 1:
+                shared = condition.to(h_in)
+            else:
+                h_in = torch.cat([h_in, condition.to(h_in).expand(*batch, cfg.cond_dim)], dim=-1)
         elif condition is not None:
             raise ValueError("this field takes no condition (cond_dim = 0)")
         h = h_in
         for i, layer in enumerate(self.trunk):
             if i in cfg.skips:
                 h = torch.cat([h, h_in], dim=-1)
-            h = F.relu(layer(h))
+            if shared is None or not (i == 0 or i in cfg.skips):
+                h = F.relu(layer(h))
+            else:
+                # W [x; c] + b == W_x x + (W_c c + b): the same layer without a per-point copy of c.
+                k = cfg.cond_dim
+                h = F.relu(F.linear(h, layer.weight[:, :-k], layer.bias + layer.weight[:, -k:] @ shared))
         raw_density = self.density_head(h)[..., 0] + cfg.density_bias
         density = F.relu(raw_density) if cfg.density_activation == "relu" else F.softplus(raw_density)
         if self.direction_encoding is not None:

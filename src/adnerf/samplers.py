@@ -13,6 +13,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
+from .pose import directions_to_canonical, to_canonical
 from .rays import RayBundle, RaySamples
 
 __all__ = [
@@ -20,6 +21,7 @@ __all__ = [
     "Bounds",
     "ImportanceSampler",
     "NearFarBounds",
+    "PosedAABBBounds",
     "SphereBounds",
     "StratifiedSampler",
     "blur_weights",
@@ -127,6 +129,37 @@ class AABBBounds:
     def __call__(self, rays: RayBundle) -> tuple[Tensor, Tensor]:
         o, d = torch.broadcast_tensors(rays.origins, rays.directions)
         near, far, _ = ray_aabb(o, d, self.aabb_min, self.aabb_max, self.near_min)
+        return near, far
+
+
+@dataclass
+class PosedAABBBounds:
+    """Bounds from a box fixed in a rigidly moving frame (e.g. the head box in canonical space).
+
+    A box point ``p`` sits at ``R p + t`` in the rays' frame. Rays are moved into the box frame
+    with the inverse transform; a rigid map keeps distances, so the ``t`` values found there are the
+    ``t`` values of the original rays.
+
+    Attributes:
+        aabb_min: Box minimum in the box frame ``(3,)``.
+        aabb_max: Box maximum ``(3,)``.
+        R: Rotation box frame -> ray frame ``(3, 3)`` (or broadcastable against the rays).
+        t: Translation ``(3,)``.
+        near_min: Smallest allowed ``t``.
+    """
+
+    aabb_min: Tensor
+    aabb_max: Tensor
+    R: Tensor
+    t: Tensor
+    near_min: float = 0.0
+
+    def __call__(self, rays: RayBundle) -> tuple[Tensor, Tensor]:
+        o, d = torch.broadcast_tensors(rays.origins, rays.directions)
+        R = self.R.to(o)
+        o_box = to_canonical(o, R, self.t.to(o))
+        d_box = directions_to_canonical(d, R)
+        near, far, _ = ray_aabb(o_box, d_box, self.aabb_min, self.aabb_max, self.near_min)
         return near, far
 
 
