@@ -1,0 +1,347 @@
+"""The dataset folder: what training, rendering and evaluation read, and what preprocessing writes.
+
+Layout (format ``adnerf-dataset``, version 1)::
+
+    DATASET/
+      meta.json            format, version, fps, size, intrinsics, near/far, head and torso boxes,
+                           mouth point, audio feature kind and width, train/test frame indices
+      frames/000000.png    RGB frames
+      parsing/000000.png   label maps: 0 background, 1 head, 2 torso (uint8 PNG)
+      background.png       the background plate (RGB)
+      poses.npy            (N, 4, 4) float64 head-canonical -> camera transforms
+      audio.wav            the audio track (mono PCM, clock starts at frame 0's time)
+      features.npy         (N, 16, D) float32 audio feature windows, one per frame
+      truth/               synthetic scenes only: poses.npy, parsing.npy (N, H, W) uint8,
+                           depth.npy (N, H, W) float32 (distance along the unit pixel ray,
+                           +inf where no surface), jaw.npy (N,) mouth opening in [0, 1]
+
+Conventions: the camera is static with OpenCV axes (x right, y down, z forward) and is the world
+frame; a pose maps head-canonical points ``p`` to camera points ``R p + t``; the head box
+(``head_aabb``) is in canonical space, the torso box (``torso_aabb``) in camera space; lengths are
+in scene units (the synthetic head is 1.6 units wide). A dataset is written to a temporary folder
+and renamed into place, so a folder that exists is complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from .cameras import Camera, intrinsics_matrix
+from .io import AudioTrack, MediaError, read_audio
+from .pose import HeadPose
+
+__all__ = ["FORMAT", "VERSION", "DatasetError", "SceneMeta", "Truth", "TalkingHeadDataset", "load_dataset", "save_dataset"]
+
+FORMAT = "adnerf-dataset"
+VERSION = 1
+LABEL_BACKGROUND, LABEL_HEAD, LABEL_TORSO = 0, 1, 2
+MOUTH_CROP = 0.8  # side of the square around the mouth point (scene units) that evaluation crops and training favours
+
+
+class DatasetError(ValueError):
+    """A dataset folder is missing, of another format or version, or inconsistent."""
+
+
+@dataclass
+class SceneMeta:
+    """The scalar description of a dataset (``meta.json``).
+
+    Attributes:
+        fps: Frame rate (frame ``i`` is shown at ``i / fps`` seconds on the audio clock).
+        width: Frame width in pixels.
+        height: Frame height in pixels.
+        intrinsics: ``(fx, fy, cx, cy)`` in pixels, pixel centres at ``+0.5``.
+        near: Nearest distance along a ray that can hold the person (scene units).
+        far: Farthest such distance.
+        head_aabb: Head box in canonical space, ``((x, y, z)_min, (x, y, z)_max)``.
+        torso_aabb: Torso box in camera space.
+        mouth: Mouth centre in canonical space ``(x, y, z)`` (the mouth crop of evaluation).
+        feature_kind: Audio feature extractor (see :class:`adnerf.features.FeatureSpec`).
+        feature_dim: Width ``D`` of the feature windows.
+        n_frames: Number of frames ``N``.
+        train: Training frame indices.
+        test: Held-out frame indices.
+        source: Where the dataset came from (free text).
+    """
+
+    fps: float
+    width: int
+    height: int
+    intrinsics: tuple[float, float, float, float]
+    near: float
+    far: float
+    head_aabb: tuple[tuple[float, float, float], tuple[float, float, float]]
+    torso_aabb: tuple[tuple[float, float, float], tuple[float, float, float]]
+    mouth: tuple[float, float, float]
+    feature_kind: str
+    feature_dim: int
+    n_frames: int
+    train: list[int]
+    test: list[int]
+    source: str = ""
+
+    def validate(self, where: str = "meta.json") -> None:
+        """Raise :class:`DatasetError` on values that cannot describe a scene."""
+        if not (self.fps > 0 and self.width > 0 and self.height > 0 and self.n_frames > 0):
+            raise DatasetError(f"{where}: fps, width, height and n_frames must be positive")
+        if not 0 <= self.near < self.far:
+            raise DatasetError(f"{where}: need 0 <= near < far; got {self.near}, {self.far}")
+        for name in ("head_aabb", "torso_aabb"):
+            lo, hi = (np.asarray(v, dtype=float) for v in getattr(self, name))
+            if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
+                raise DatasetError(f"{where}: {name} must be two 3-vectors with max > min")
+        if not self.train:
+            raise DatasetError(f"{where}: the train split is empty")
+        indices = list(self.train) + list(self.test)
+        if min(indices) < 0 or max(indices) >= self.n_frames:
+            raise DatasetError(f"{where}: split indices must lie in [0, {self.n_frames})")
+        if set(self.train) & set(self.test):
+            raise DatasetError(f"{where}: train and test splits overlap")
+
+    def camera(self, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Camera:
+        """The static camera (world = camera frame)."""
+        K = intrinsics_matrix(*self.intrinsics, dtype=dtype).to(device)
+        return Camera(K, self.height, self.width)
+
+    def box(self, name: str, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``head_aabb`` or ``torso_aabb`` as two ``(3,)`` tensors."""
+        lo, hi = getattr(self, name)
+        return torch.tensor(lo, dtype=dtype, device=device), torch.tensor(hi, dtype=dtype, device=device)
+
+
+@dataclass
+class Truth:
+    """Exact quantities of a synthetic scene (``truth/``).
+
+    Attributes:
+        poses: ``(N, 4, 4)`` float64 head poses.
+        parsing: ``(N, H, W)`` uint8 label maps.
+        depth: ``(N, H, W)`` float32 distance along the unit pixel ray (``inf``: background).
+        jaw: ``(N,)`` mouth opening in ``[0, 1]``.
+    """
+
+    poses: np.ndarray
+    parsing: np.ndarray
+    depth: np.ndarray
+    jaw: np.ndarray
+
+
+@dataclass
+class TalkingHeadDataset:
+    """A loaded dataset; arrays are numpy, in the shapes of the module docstring.
+
+    Attributes:
+        root: The folder.
+        meta: Its :class:`SceneMeta`.
+        frames: ``(N, H, W, 3)`` uint8 RGB.
+        parsing: ``(N, H, W)`` uint8 labels.
+        background: ``(H, W, 3)`` uint8 RGB plate.
+        poses: ``(N, 4, 4)`` float64.
+        features: ``(N, 16, D)`` float32.
+        audio: The audio track.
+        truth: :class:`Truth` for synthetic scenes, else ``None``.
+    """
+
+    root: Path
+    meta: SceneMeta
+    frames: np.ndarray
+    parsing: np.ndarray
+    background: np.ndarray
+    poses: np.ndarray
+    features: np.ndarray
+    audio: AudioTrack
+    truth: Truth | None = field(default=None, repr=False)
+
+    def head_pose(self, index: int | Sequence[int] | np.ndarray, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> HeadPose:
+        """The head pose(s) of frame(s) ``index`` as a :class:`HeadPose`."""
+        return HeadPose.from_matrix(torch.as_tensor(self.poses[index], dtype=dtype, device=device))
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    img = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    if not cv2.imwrite(str(path), img):
+        raise DatasetError(f"{path}: could not write the image")
+
+
+def _read_png(path: Path, color: bool) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR if color else cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DatasetError(f"{path}: missing or unreadable image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if color else img
+
+
+def write_wav(path: Path, audio: AudioTrack) -> None:
+    """Write mono 16-bit PCM (samples clipped to ``[-1, 1]``)."""
+    from scipy.io import wavfile
+
+    pcm = np.round(np.clip(audio.samples, -1.0, 1.0) * 32767.0).astype(np.int16)
+    wavfile.write(str(path), int(audio.sample_rate), pcm)
+
+
+def save_dataset(
+    root: str | Path,
+    meta: SceneMeta,
+    *,
+    frames: np.ndarray,
+    parsing: np.ndarray,
+    background: np.ndarray,
+    poses: np.ndarray,
+    features: np.ndarray,
+    audio: AudioTrack,
+    truth: Truth | None = None,
+    extra: Callable[[Path], None] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a dataset folder atomically (a temporary sibling renamed into place).
+
+    Args:
+        root: Destination folder; must not exist unless ``overwrite``.
+        meta: Scene description; validated and checked against the arrays.
+        frames: ``(N, H, W, 3)`` uint8.
+        parsing: ``(N, H, W)`` uint8 labels in {0, 1, 2}.
+        background: ``(H, W, 3)`` uint8.
+        poses: ``(N, 4, 4)``.
+        features: ``(N, 16, D)``.
+        audio: Audio whose sample 0 plays with frame 0.
+        truth: Exact quantities of a synthetic scene.
+        extra: Called with the temporary folder to add more files (e.g. an mp4) before the rename.
+        overwrite: Replace an existing folder.
+
+    Returns:
+        The dataset folder.
+    """
+    root = Path(root)
+    if root.exists() and not overwrite:
+        raise DatasetError(f"{root}: already exists (choose another folder or remove it)")
+    meta.validate()
+    _check_arrays(meta, frames, parsing, background, poses, features, str(root))
+    tmp = root.with_name(f".{root.name}.tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "frames").mkdir(parents=True)
+    (tmp / "parsing").mkdir()
+    try:
+        for i in range(meta.n_frames):
+            _write_png(tmp / "frames" / f"{i:06d}.png", frames[i])
+            _write_png(tmp / "parsing" / f"{i:06d}.png", parsing[i])
+        _write_png(tmp / "background.png", background)
+        np.save(tmp / "poses.npy", np.asarray(poses, dtype=np.float64))
+        np.save(tmp / "features.npy", np.asarray(features, dtype=np.float32))
+        write_wav(tmp / "audio.wav", audio)
+        if truth is not None:
+            (tmp / "truth").mkdir()
+            np.save(tmp / "truth" / "poses.npy", np.asarray(truth.poses, dtype=np.float64))
+            np.save(tmp / "truth" / "parsing.npy", np.asarray(truth.parsing, dtype=np.uint8))
+            np.save(tmp / "truth" / "depth.npy", np.asarray(truth.depth, dtype=np.float32))
+            np.save(tmp / "truth" / "jaw.npy", np.asarray(truth.jaw, dtype=np.float64))
+        if extra is not None:
+            extra(tmp)
+        doc = {"format": FORMAT, "version": VERSION, **asdict(meta)}
+        (tmp / "meta.json").write_text(json.dumps(doc, indent=1))
+        if root.exists():
+            shutil.rmtree(root)
+        os.replace(tmp, root)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return root
+
+
+def _check_arrays(meta: SceneMeta, frames: np.ndarray, parsing: np.ndarray, background: np.ndarray, poses: np.ndarray, features: np.ndarray, where: str) -> None:
+    n, h, w = meta.n_frames, meta.height, meta.width
+    expect = {
+        "frames": (frames, (n, h, w, 3)),
+        "parsing": (parsing, (n, h, w)),
+        "background": (background, (h, w, 3)),
+        "poses": (poses, (n, 4, 4)),
+    }
+    for name, (arr, shape) in expect.items():
+        if tuple(arr.shape) != shape:
+            raise DatasetError(f"{where}: {name} has shape {tuple(arr.shape)}; meta.json says {shape}")
+    if features.ndim != 3 or features.shape[0] != n or features.shape[1] != 16 or features.shape[2] != meta.feature_dim:
+        raise DatasetError(f"{where}: features have shape {tuple(features.shape)}; expected ({n}, 16, {meta.feature_dim})")
+    if parsing.size and int(parsing.max()) > LABEL_TORSO:
+        raise DatasetError(f"{where}: parsing labels must be 0 (background), 1 (head) or 2 (torso)")
+    if not np.all(np.isfinite(poses)) or not np.allclose(poses[:, 3], [0, 0, 0, 1]):
+        raise DatasetError(f"{where}: poses must be finite rigid 4x4 matrices with last row (0, 0, 0, 1)")
+    rot = poses[:, :3, :3]
+    err = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max() if n else 0.0
+    if err > 1e-4:
+        raise DatasetError(f"{where}: pose rotations are not orthonormal (max |R R^T - I| = {err:.2e})")
+    if not np.all(np.isfinite(features)):
+        raise DatasetError(f"{where}: features contain NaN or inf")
+
+
+def read_meta(root: str | Path) -> SceneMeta:
+    """Read and validate ``meta.json`` (format and version checked)."""
+    root = Path(root)
+    path = root / "meta.json"
+    if not root.is_dir():
+        raise DatasetError(f"{root}: no such dataset folder")
+    if not path.exists():
+        raise DatasetError(f"{root}: not an adnerf dataset (no meta.json)")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{path}: not valid JSON ({exc})") from exc
+    if doc.get("format") != FORMAT:
+        raise DatasetError(f"{path}: format is {doc.get('format')!r}, not {FORMAT!r}")
+    if doc.get("version") != VERSION:
+        raise DatasetError(
+            f"{path}: dataset version {doc.get('version')!r}; this adnerf reads version {VERSION} (re-create the dataset with this version)"
+        )
+    body = {k: v for k, v in doc.items() if k not in ("format", "version")}
+    known = set(SceneMeta.__dataclass_fields__)
+    missing = known - set(body) - {"source"}
+    if missing:
+        raise DatasetError(f"{path}: missing keys {sorted(missing)}")
+    unknown = set(body) - known
+    if unknown:
+        raise DatasetError(f"{path}: unknown keys {sorted(unknown)}")
+    body["intrinsics"] = tuple(body["intrinsics"])
+    body["head_aabb"] = tuple(tuple(v) for v in body["head_aabb"])
+    body["torso_aabb"] = tuple(tuple(v) for v in body["torso_aabb"])
+    body["mouth"] = tuple(body["mouth"])
+    meta = SceneMeta(**body)
+    meta.validate(str(path))
+    return meta
+
+
+def load_dataset(root: str | Path, *, truth: bool = True) -> TalkingHeadDataset:
+    """Load and validate a dataset folder.
+
+    Args:
+        root: The folder.
+        truth: Also load ``truth/`` when present.
+
+    Raises:
+        DatasetError: Missing files, wrong format or version, or inconsistent shapes.
+    """
+    root = Path(root)
+    meta = read_meta(root)
+    n = meta.n_frames
+    frames = np.stack([_read_png(root / "frames" / f"{i:06d}.png", True) for i in range(n)])
+    parsing = np.stack([_read_png(root / "parsing" / f"{i:06d}.png", False) for i in range(n)])
+    background = _read_png(root / "background.png", True)
+    for name in ("poses.npy", "features.npy", "audio.wav"):
+        if not (root / name).exists():
+            raise DatasetError(f"{root}: missing {name}")
+    poses = np.load(root / "poses.npy")
+    features = np.load(root / "features.npy")
+    _check_arrays(meta, frames, parsing, background, poses, features, str(root))
+    try:
+        audio = read_audio(root / "audio.wav")
+    except MediaError as exc:
+        raise DatasetError(str(exc)) from exc
+    tr = None
+    if truth and (root / "truth").is_dir():
+        t = root / "truth"
+        tr = Truth(np.load(t / "poses.npy"), np.load(t / "parsing.npy"), np.load(t / "depth.npy"), np.load(t / "jaw.npy"))
+    return TalkingHeadDataset(root, meta, frames, parsing, background, poses, features, audio, tr)

@@ -1,0 +1,500 @@
+"""A synthetic talking head with exact ground truth: the built-in default scene.
+
+The scene is built with trimesh and rendered by ray casting (Embree through ``embreex`` when it is
+installed, trimesh's pure-python intersector otherwise), one ray per pixel centre, so that the
+dataset is exactly what a radiance field rendered with our cameras can reproduce:
+
+* a head (an ellipsoid mesh, 1.6 x 2.0 x 1.8 units) whose front carries the face of
+  ``skimage.data.astronaut()`` (a real photograph that ships with scikit-image) and whose back
+  carries hair sampled from the same photograph; colours are a function of the *rest* surface
+  point (shading baked in canonical space), so the head is rigid in its canonical frame except for
+* a jaw: the lower face rotates about a hinge behind the mouth by an angle proportional to the
+  mouth opening, and a dark mouth interior painted at the lips grows with it;
+* a torso (neck and shoulders wearing the photograph's orange suit) in camera space, whose smaller
+  motion is a fixed function of the head pose (so a field conditioned on the pose can learn it);
+* a static background (``skimage.data.rocket()``), a smooth random head pose track, and
+* an audio track of speech-like sound (glottal pulses through vowel formants, bursts and pauses)
+  or, with ``voice="espeak"``, real synthetic speech from espeak-ng. The mouth opening of each
+  frame is the normalised loudness of the voiced band (150-1000 Hz) around the frame's time.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import trimesh
+
+from .data import LABEL_HEAD, LABEL_TORSO, SceneMeta, Truth, save_dataset
+from .features import FeatureSpec, speech_windows
+from .io import AudioTrack, read_audio, write_video
+
+__all__ = ["SynthConfig", "HeadModel", "TorsoModel", "background_plate", "render_frame", "speech_audio", "mouth_opening", "pose_track", "synthesize"]
+
+SAMPLE_RATE = 16000
+HEAD_RADII = np.array([0.8, 1.0, 0.9])
+HEAD_AABB = ((-0.95, -1.15, -1.05), (0.95, 1.35, 1.05))
+MOUTH = (0.0, 0.42, -0.82)
+HEAD_CENTER = np.array([0.0, -0.45, 6.0])
+TORSO_AABB = ((-2.6, -0.2, 5.2), (2.6, 3.0, 7.4))
+NEAR, FAR = 4.0, 8.5
+FOCAL_PER_PIXEL = 1.33  # fx = fy = 1.33 * size: the frame spans 4.5 units at the head's distance
+JAW_MAX_ANGLE = 0.14  # radians at full opening: the chin drops by about 7% of the head height
+_LIGHT = np.array([-0.35, -0.5, -1.0]) / np.linalg.norm([-0.35, -0.5, -1.0])
+
+SENTENCES = [
+    "The quick brown fox jumps over the lazy dog.",
+    "A radiance field can learn how a talking face looks from every side.",
+    "Open your mouth wide and say ah, then close it again.",
+    "We rendered the astronaut speaking words she never said.",
+    "Every video frame hears a short window of the sound around it.",
+    "Numbers like one, two, three and four are easy to hear.",
+    "Bright colours and soft shadows make the picture look real.",
+    "Please speak slowly, pause often, and smile at the camera.",
+]
+
+
+@dataclass
+class SynthConfig:
+    """Parameters of a synthetic scene.
+
+    Attributes:
+        seconds: Length of the video.
+        size: Frame width and height in pixels.
+        fps: Frame rate.
+        seed: Seed of the pose track and the speech.
+        voice: ``"formant"`` (built-in speech-like sound), ``"espeak"`` (espeak-ng speech; must be
+            installed) or ``"auto"`` (espeak-ng when installed).
+        features: Audio feature kind stored with the dataset (see :class:`FeatureSpec`). The
+            default ``"logmel"`` sees the loudness that drives the synthetic mouth directly.
+        test_fraction: Fraction of frames, at the end of the clip, held out for testing.
+        max_yaw: Amplitude of the head's yaw in degrees (pitch and roll are smaller).
+    """
+
+    seconds: float = 18.0
+    size: int = 128
+    fps: float = 25.0
+    seed: int = 0
+    voice: str = "auto"
+    features: str = "logmel"
+    test_fraction: float = 0.15
+    max_yaw: float = 20.0
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` on impossible settings."""
+        if self.seconds < 1.0:
+            raise ValueError(f"a synthetic scene needs at least 1 second; got {self.seconds}")
+        if self.size < 16:
+            raise ValueError(f"size must be >= 16 pixels; got {self.size}")
+        if self.fps <= 0:
+            raise ValueError(f"fps must be positive; got {self.fps}")
+        if not 0.0 < self.test_fraction < 1.0:
+            raise ValueError(f"test_fraction must lie in (0, 1); got {self.test_fraction}")
+        if self.voice not in ("auto", "formant", "espeak"):
+            raise ValueError(f"voice must be auto, formant or espeak; got {self.voice!r}")
+
+
+# ----------------------------------------------------------------------------------------- audio
+
+_VOWELS = {  # (F1, F2, F3) in Hz and how open the mouth is
+    "a": (750, 1200, 2500),
+    "e": (500, 1800, 2500),
+    "i": (300, 2250, 3000),
+    "o": (500, 900, 2400),
+    "u": (320, 800, 2300),
+}
+
+
+def _resonator(x: np.ndarray, freq: float, bandwidth: float, rate: int) -> np.ndarray:
+    from scipy.signal import lfilter
+
+    r = math.exp(-math.pi * bandwidth / rate)
+    c = 2 * r * math.cos(2 * math.pi * freq / rate)
+    return lfilter([1 - r], [1.0, -c, r * r], x)
+
+
+def formant_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0) -> np.ndarray:
+    """Speech-like sound: phrases of vowel syllables (glottal pulses through three formants),
+    noise bursts as consonants, and pauses between phrases. Returns float32 ``(n,)`` in [-1, 1]."""
+    rng = np.random.default_rng(seed)
+    n = int(round(seconds * rate))
+    out = np.zeros(n)
+    t = 0.25
+    while t < seconds - 0.4:
+        for _ in range(int(rng.integers(3, 8))):
+            dur = float(rng.uniform(0.12, 0.32))
+            if t + dur > seconds - 0.2:
+                break
+            start = int(t * rate)
+            if rng.random() < 0.6:  # a consonant: a short noise burst
+                m = int(rng.uniform(0.03, 0.07) * rate)
+                burst = rng.standard_normal(m) * np.hanning(m) * 0.05
+                out[start : start + m] += np.diff(burst, prepend=0.0)
+                start += m
+            m = int(dur * rate)
+            f0 = rng.uniform(105, 145) * (1 + 0.08 * np.linspace(0.5, -0.5, m))
+            phase = np.cumsum(f0 / rate)
+            source = np.diff(np.floor(phase), prepend=0.0)  # one impulse per glottal period
+            f1, f2, f3 = _VOWELS[str(rng.choice(list(_VOWELS)))]
+            voice = _resonator(source, f1, 90, rate) + 0.6 * _resonator(source, f2, 110, rate) + 0.3 * _resonator(source, f3, 150, rate)
+            ramp = min(int(0.04 * rate), m // 3)
+            env = np.ones(m)
+            env[:ramp] = np.sin(np.linspace(0, np.pi / 2, ramp)) ** 2
+            env[-ramp:] = env[:ramp][::-1]
+            voice = voice * env * rng.uniform(0.3, 1.0)
+            out[start : start + m] += voice[: max(0, min(m, n - start))]
+            t = (start + m) / rate + float(rng.uniform(0.0, 0.06))
+        t += float(rng.uniform(0.25, 0.7))
+    peak = np.abs(out).max()
+    return (0.8 * out / peak if peak > 0 else out).astype(np.float32)
+
+
+def espeak_available() -> bool:
+    """Whether the ``espeak-ng`` program is on the PATH."""
+    return shutil.which("espeak-ng") is not None
+
+
+def espeak_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0) -> np.ndarray:
+    """Real synthetic English speech from espeak-ng, sentences separated by pauses, cut or padded
+    to ``seconds``. Returns float32 ``(n,)``."""
+    if not espeak_available():
+        raise RuntimeError("espeak-ng is not installed (apt install espeak-ng), or use voice='formant'")
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(SENTENCES))
+    pieces: list[np.ndarray] = []
+    total = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        k = 0
+        while total < seconds * rate:
+            wav = Path(tmp) / f"s{k}.wav"
+            text = SENTENCES[order[k % len(order)]]
+            subprocess.run(["espeak-ng", "-s", "150", "-w", str(wav), text], check=True, capture_output=True)
+            track = read_audio(wav, sample_rate=rate)
+            pause = np.zeros(int(rng.uniform(0.25, 0.6) * rate), dtype=np.float32)
+            pieces += [track.samples, pause]
+            total += len(track.samples) + len(pause)
+            k += 1
+    out = np.concatenate(pieces)[: int(round(seconds * rate))]
+    out = np.pad(out, (0, int(round(seconds * rate)) - len(out)))
+    peak = np.abs(out).max()
+    return (0.8 * out / peak if peak > 0 else out).astype(np.float32)
+
+
+def speech_audio(seconds: float, voice: str = "auto", seed: int = 0, rate: int = SAMPLE_RATE) -> tuple[np.ndarray, str]:
+    """The scene's audio and the voice used (``"espeak"`` or ``"formant"``)."""
+    if voice == "espeak" or (voice == "auto" and espeak_available()):
+        return espeak_speech(seconds, rate, seed), "espeak"
+    return formant_speech(seconds, rate, seed), "formant"
+
+
+def mouth_opening(samples: np.ndarray, rate: int, times: np.ndarray, window: float = 0.06) -> np.ndarray:
+    """Mouth opening in ``[0, 1]`` at each time: the RMS of the 150-1000 Hz band over ``window``
+    seconds centred there, divided by its 98th percentile over the clip and clipped."""
+    from scipy.signal import butter, sosfiltfilt
+
+    sos = butter(4, [150, 1000], btype="bandpass", fs=rate, output="sos")
+    band = sosfiltfilt(sos, samples.astype(np.float64))
+    energy = np.concatenate([[0.0], np.cumsum(band**2)])
+    half = int(window * rate / 2)
+    centre = np.round(np.asarray(times) * rate).astype(int)
+    lo = np.clip(centre - half, 0, len(band))
+    hi = np.clip(centre + half, 0, len(band))
+    rms = np.sqrt((energy[hi] - energy[lo]) / np.maximum(hi - lo, 1))
+    ref = np.percentile(rms, 98)
+    if ref <= 0:
+        return np.zeros_like(rms)
+    return np.clip(rms / ref, 0.0, 1.0)
+
+
+# ------------------------------------------------------------------------------------------ pose
+
+
+def _euler(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """``R_y(yaw) R_x(pitch) R_z(roll)`` (radians), the convention of :func:`adnerf.pose.euler_rotation`."""
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    one, zero = np.ones_like(yaw), np.zeros_like(yaw)
+    Ry = np.stack([np.stack([cy, zero, sy], -1), np.stack([zero, one, zero], -1), np.stack([-sy, zero, cy], -1)], -2)
+    Rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, cp, -sp], -1), np.stack([zero, sp, cp], -1)], -2)
+    Rz = np.stack([np.stack([cr, -sr, zero], -1), np.stack([sr, cr, zero], -1), np.stack([zero, zero, one], -1)], -2)
+    return Ry @ Rx @ Rz
+
+
+def _smooth_signal(n: int, fps: float, rng: np.random.Generator) -> np.ndarray:
+    """A smooth signal in [-1, 1]: three sinusoids of random frequencies (0.05-0.35 Hz) and phases."""
+    t = np.arange(n) / fps
+    s = sum(rng.uniform(0.5, 1.0) * np.sin(2 * np.pi * rng.uniform(0.05, 0.35) * t + rng.uniform(0, 2 * np.pi)) for _ in range(3))
+    return s / max(np.abs(s).max(), 1e-9)
+
+
+def pose_track(n: int, fps: float, seed: int = 0, max_yaw: float = 20.0) -> np.ndarray:
+    """A smooth random head pose track ``(n, 4, 4)`` (head-canonical to camera).
+
+    Yaw spans ``±max_yaw`` degrees, pitch half of it, roll a fifth; the head centre moves by up to
+    0.08 units around :data:`HEAD_CENTER`.
+    """
+    rng = np.random.default_rng(seed + 1)
+    yaw, pitch, roll = (np.deg2rad(max_yaw * f) * _smooth_signal(n, fps, rng) for f in (1.0, 0.5, 0.2))
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3] = _euler(yaw, pitch, roll)
+    poses[:, :3, 3] = HEAD_CENTER + 0.08 * np.stack([_smooth_signal(n, fps, rng) for _ in range(3)], -1)
+    return poses
+
+
+def torso_pose(head_pose: np.ndarray) -> np.ndarray:
+    """The torso's rigid transform (torso frame -> camera) as a fixed function of the head pose:
+    a third of the head's translation offset and a quarter of its yaw and roll."""
+    R = head_pose[:3, :3]
+    yaw = math.atan2(R[0, 2], R[2, 2])
+    roll = math.atan2(R[1, 0], R[1, 1])
+    out = np.eye(4)
+    out[:3, :3] = _euler(np.array(0.25 * yaw), np.array(0.0), np.array(0.25 * roll))
+    out[:3, 3] = np.array([0.0, 1.2, 6.35]) + (head_pose[:3, 3] - HEAD_CENTER) / 3.0
+    return out
+
+
+# ------------------------------------------------------------------------------------- textures
+
+
+def _photo() -> np.ndarray:
+    from skimage import data
+
+    return data.astronaut().astype(np.float32) / 255.0
+
+
+def _sample(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of ``image (h, w, 3)`` at pixel coordinates ``u`` (column), ``v`` (row)."""
+    mx = u.astype(np.float32).reshape(1, -1)
+    my = v.astype(np.float32).reshape(1, -1)
+    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    return out.reshape(-1, 3)
+
+
+class HeadModel:
+    """The head mesh, its jaw and its colours, in canonical space.
+
+    Args:
+        size: Frame size the texture is band-limited for (texture detail finer than about half a
+            pixel at that size is removed, so that one ray per pixel does not alias).
+    """
+
+    def __init__(self, size: int) -> None:
+        sphere = trimesh.creation.icosphere(subdivisions=5)
+        self.rest = np.asarray(sphere.vertices) * HEAD_RADII
+        self.faces = np.asarray(sphere.faces)
+        y, z = self.rest[:, 1], self.rest[:, 2]
+        # Jaw weight: 0 above the mouth line, 1 on the chin, only on the front-lower part.
+        wy = np.clip((y - 0.40) / 0.10, 0.0, 1.0)
+        wz = np.clip((0.35 - z) / 0.35, 0.0, 1.0)
+        self.jaw_weight = (wy * wy * (3 - 2 * wy)) * (wz * wz * (3 - 2 * wz))
+        self.hinge = np.array([0.0, 0.12, 0.35])
+        photo = _photo()
+        head_px = FOCAL_PER_PIXEL * size / HEAD_CENTER[2]  # screen pixels per unit at the head
+        face = photo[10:205, 120:330]  # rows span the head's 2 units of height
+        scale = min(1.0, 2.0 * head_px * 1.9 / face.shape[0])  # about 2 texels per screen pixel
+        self.face = cv2.resize(face, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else face
+        self.face_scale = scale
+        hair = photo[18:70, 175:285]
+        self.hair = cv2.resize(hair, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else hair
+
+    def vertices(self, opening: float) -> np.ndarray:
+        """Canonical vertex positions ``(V, 3)`` with the jaw opened by ``opening`` in [0, 1]."""
+        angle = JAW_MAX_ANGLE * float(opening) * self.jaw_weight
+        p = self.rest - self.hinge
+        c, s = np.cos(angle), np.sin(angle)
+        out = self.rest.copy()
+        out[:, 1] = p[:, 1] * c - p[:, 2] * s + self.hinge[1]
+        out[:, 2] = p[:, 1] * s + p[:, 2] * c + self.hinge[2]
+        return out
+
+    def colors(self, rest_points: np.ndarray, opening: float) -> np.ndarray:
+        """Colours ``(n, 3)`` in [0, 1] at rest-surface points ``(n, 3)``."""
+        x, y, z = rest_points.T
+        n = rest_points / HEAD_RADII**2
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        s = self.face_scale
+        face = _sample(self.face, (105.0 + x * 118.0) * s, (95.0 + y * 97.0) * s)
+        hair = _sample(self.hair, (55.0 + x * 60.0) * s, (26.0 + z * 25.0) * s)  # mirrored beyond the crop
+        front = np.clip((-n[:, 2] - 0.05) / 0.35, 0.0, 1.0)[:, None]
+        rgb = front * face + (1 - front) * hair
+        # The mouth: an ellipse at the lips (rest coordinates) that opens with the jaw.
+        mx, my = MOUTH[0], MOUTH[1]
+        half_h = 0.012 + 0.085 * float(opening)
+        inside = ((x - mx) / 0.20) ** 2 + ((y - my - 0.5 * half_h) / half_h) ** 2 < 1.0
+        inside &= z < 0
+        rgb[inside] = np.array([0.22, 0.04, 0.06])
+        shade = 0.72 + 0.28 * np.clip(n @ _LIGHT, 0.0, 1.0)
+        return np.clip(rgb * shade[:, None], 0.0, 1.0)
+
+
+class TorsoModel:
+    """Neck and shoulders in the torso frame, wearing the photograph's suit."""
+
+    def __init__(self, size: int) -> None:
+        neck = trimesh.creation.cylinder(radius=0.36, height=1.3, sections=48)
+        neck.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+        neck.apply_translation([0.0, -0.25, 0.0])
+        shoulders = trimesh.creation.capsule(height=2.0, radius=0.62, count=[24, 24])
+        shoulders.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+        shoulders.apply_scale([1.0, 1.0, 0.6])
+        shoulders.apply_translation([0.0, 0.95, 0.1])
+        self.parts = [neck, shoulders]
+        self.mesh = trimesh.util.concatenate(self.parts)
+        self.n_neck_faces = len(neck.faces)
+        photo = _photo()
+        suit = photo[300:500, 40:340]
+        scale = min(1.0, FOCAL_PER_PIXEL * size / 6.35 * 3.4 * 1.5 / suit.shape[1])
+        self.suit = cv2.resize(suit, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else suit
+        self.skin = photo[150:175, 200:250].reshape(-1, 3).mean(0)
+
+    def colors(self, points: np.ndarray, normals: np.ndarray, is_neck: np.ndarray) -> np.ndarray:
+        """Colours at torso-frame surface points with their normals."""
+        h, w = self.suit.shape[:2]
+        u = (points[:, 0] / 3.4 + 0.5) * (w - 1)
+        v = np.clip((points[:, 1] - 0.3) / 1.4, 0, 1) * (h - 1)
+        rgb = _sample(self.suit, u, v)
+        rgb[is_neck] = self.skin
+        shade = 0.7 + 0.3 * np.clip(normals @ _LIGHT, 0.0, 1.0)
+        return np.clip(rgb * shade[:, None], 0.0, 1.0)
+
+
+def _intersector(mesh: trimesh.Trimesh):
+    if trimesh.ray.has_embree:
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+        return RayMeshIntersector(mesh)
+    from trimesh.ray.ray_triangle import RayMeshIntersector as Slow
+
+    return Slow(mesh)
+
+
+def pixel_ray_directions(size: int) -> np.ndarray:
+    """Unit directions ``(size * size, 3)`` through pixel centres (row-major), camera frame."""
+    f = FOCAL_PER_PIXEL * size
+    ys, xs = np.mgrid[0:size, 0:size] + 0.5
+    d = np.stack([(xs - size / 2) / f, (ys - size / 2) / f, np.ones_like(xs)], -1).reshape(-1, 3)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def render_frame(head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: float, background: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ray-cast one frame.
+
+    Returns:
+        ``(rgb (H, W, 3) float in [0, 1], labels (H, W) uint8, depth (H, W) float32)``.
+    """
+    size = background.shape[0]
+    dirs = pixel_ray_directions(size)
+    origins = np.zeros_like(dirs)
+    head_v = head.vertices(opening) @ pose[:3, :3].T + pose[:3, 3]
+    tpose = torso_pose(pose)
+    torso_v = np.asarray(torso.mesh.vertices) @ tpose[:3, :3].T + tpose[:3, 3]
+    n_head = len(head.faces)
+    mesh = trimesh.Trimesh(np.concatenate([head_v, torso_v]), np.concatenate([head.faces, np.asarray(torso.mesh.faces) + len(head_v)]), process=False)
+    tri, ray, loc = _intersector(mesh).intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+    rgb = background.reshape(-1, 3).astype(np.float32).copy()
+    labels = np.zeros(size * size, dtype=np.uint8)
+    depth = np.full(size * size, np.inf, dtype=np.float32)
+    depth[ray] = np.linalg.norm(loc, axis=1)
+    is_head = tri < n_head
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
+    if is_head.any():
+        rest = np.einsum("nk,nkj->nj", bary[is_head], head.rest[head.faces[tri[is_head]]])
+        rgb[ray[is_head]] = head.colors(rest, opening)
+        labels[ray[is_head]] = LABEL_HEAD
+    if (~is_head).any():
+        local_tri = tri[~is_head] - n_head
+        tfaces = np.asarray(torso.mesh.faces)[local_tri]
+        points = np.einsum("nk,nkj->nj", bary[~is_head], np.asarray(torso.mesh.vertices)[tfaces])
+        normals = np.asarray(torso.mesh.face_normals)[local_tri]
+        rgb[ray[~is_head]] = torso.colors(points, normals, local_tri < torso.n_neck_faces)
+        labels[ray[~is_head]] = LABEL_TORSO
+    return rgb.reshape(size, size, 3), labels.reshape(size, size), depth.reshape(size, size)
+
+
+def background_plate(size: int) -> np.ndarray:
+    """The static background: ``skimage.data.rocket()`` cropped square and resized, float [0, 1]."""
+    from skimage import data
+
+    img = data.rocket().astype(np.float32) / 255.0
+    h, w = img.shape[:2]
+    x0 = (w - h) // 2
+    return cv2.resize(img[:, x0 : x0 + h], (size, size), interpolation=cv2.INTER_AREA)
+
+
+def _to_u8(x: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, progress: Callable[[str, int, int], None] | None = None, overwrite: bool = False) -> Path:
+    """Build a synthetic talking-head dataset (see :mod:`adnerf.data` for the layout).
+
+    Args:
+        out_dir: Dataset folder to create.
+        config: Scene parameters.
+        progress: Called as ``progress(step, done, total)``.
+        overwrite: Replace an existing folder.
+
+    Returns:
+        The dataset folder.
+    """
+    config.validate()
+    size = config.size
+    n = int(round(config.seconds * config.fps))
+    samples, voice = speech_audio(config.seconds, config.voice, config.seed)
+    times = np.arange(n) / config.fps
+    jaw = mouth_opening(samples, SAMPLE_RATE, times)
+    poses = pose_track(n, config.fps, config.seed, config.max_yaw)
+    head, torso = HeadModel(size), TorsoModel(size)
+    background = background_plate(size)
+    frames = np.empty((n, size, size, 3), dtype=np.uint8)
+    labels = np.empty((n, size, size), dtype=np.uint8)
+    depth = np.empty((n, size, size), dtype=np.float32)
+    for i in range(n):
+        rgb, labels[i], depth[i] = render_frame(head, torso, poses[i], jaw[i], background)
+        frames[i] = _to_u8(rgb)
+        if progress is not None:
+            progress("render", i + 1, n)
+    audio = AudioTrack(samples, SAMPLE_RATE, 0.0)
+    spec = FeatureSpec(kind=config.features)
+    features = speech_windows(audio, times, spec)
+    n_test = max(1, int(round(n * config.test_fraction)))
+    meta = SceneMeta(
+        fps=float(config.fps),
+        width=size,
+        height=size,
+        intrinsics=(FOCAL_PER_PIXEL * size, FOCAL_PER_PIXEL * size, size / 2, size / 2),
+        near=NEAR,
+        far=FAR,
+        head_aabb=HEAD_AABB,
+        torso_aabb=TORSO_AABB,
+        mouth=MOUTH,
+        feature_kind=config.features,
+        feature_dim=int(features.shape[-1]),
+        n_frames=n,
+        train=list(range(n - n_test)),
+        test=list(range(n - n_test, n)),
+        source=f"adnerf synth: seconds={config.seconds} size={size} fps={config.fps} seed={config.seed} voice={voice}",
+    )
+
+    def add_video(folder: Path) -> None:
+        write_video(folder / "video.mp4", frames, config.fps, audio)
+
+    return save_dataset(
+        out_dir,
+        meta,
+        frames=frames,
+        parsing=labels,
+        background=_to_u8(background),
+        poses=poses,
+        features=features,
+        audio=audio,
+        truth=Truth(poses=poses, parsing=labels, depth=depth, jaw=jaw),
+        extra=add_video,
+        overwrite=overwrite,
+    )
