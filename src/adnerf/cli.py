@@ -102,6 +102,121 @@ def _cmd_features(args: argparse.Namespace) -> int:
     return 0
 
 
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions whose message is for the user (bad input), printed without a traceback."""
+    from .data import DatasetError
+    from .features import FeatureError
+    from .io import MediaError
+    from .render_video import RenderError
+    from .train import RunError
+
+    return (DatasetError, FeatureError, MediaError, RenderError, RunError)
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .synth import SynthConfig, synthesize
+
+    cfg = SynthConfig(seconds=args.seconds, size=args.size, seed=args.seed, voice=args.voice, features=args.features, fps=args.fps)
+    try:
+        cfg.validate()
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    with tqdm(total=int(round(cfg.seconds * cfg.fps)), desc="synth frames", unit="frame") as bar:
+        out = synthesize(args.output, cfg, progress=lambda step, done, total: bar.update(done - bar.n), overwrite=args.overwrite)
+    print(f"{out}: synthetic talking head, {cfg.seconds:g} s at {cfg.fps:g} fps, {cfg.size}x{cfg.size}")
+    return 0
+
+
+def _train_config(args: argparse.Namespace):
+    from .train import TrainConfig
+
+    doc: dict = {}
+    if args.config:
+        try:
+            doc = json.loads(open(args.config).read())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise CliError(f"{args.config}: not a readable JSON training config ({exc})") from exc
+    if args.iters is not None:
+        if args.stage in ("head", "all"):
+            doc["head_iters"] = args.iters
+        if args.stage in ("torso", "all"):
+            doc["torso_iters"] = args.iters if args.stage == "torso" else args.iters // 2
+    try:
+        cfg = TrainConfig.from_dict(doc)
+        cfg.validate()
+    except (TypeError, ValueError) as exc:
+        raise CliError(f"invalid training config: {exc}") from exc
+    return cfg, bool(doc)
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .train import train
+
+    cfg, given = _train_config(args)
+    root = train(args.dataset, args.output, stage=args.stage, config=cfg if (given or not args.resume) else None, device=_device(args.device), resume=args.resume)
+    print(f"{root}: trained ({args.stage}); render with `adnerf render {root} --audio SPEECH -o out.mp4`")
+    return 0
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .render_video import render_audio_video
+    from .train import load_run
+
+    if not args.output.endswith(".mp4"):
+        raise CliError(f"{args.output}: the output must be an .mp4 file")
+    run = load_run(args.run, _device(args.device))
+    with tqdm(desc="render", unit="frame") as bar:
+
+        def tick(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        summary = render_audio_video(
+            run,
+            args.audio,
+            args.output,
+            poses_file=args.poses,
+            from_dataset=args.from_dataset,
+            yaw=args.yaw,
+            pitch=args.pitch,
+            roll=args.roll,
+            background=args.background,
+            frames_dir=args.frames,
+            progress=tick,
+        )
+    print(f"{summary['output']}: {summary['frames']} frames, {summary['audio_seconds']:.2f} s, rendered at {summary['render_fps']:.2f} frames/s")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .data import load_dataset
+    from .evaluate import evaluate_run
+    from .train import load_run
+
+    run = load_run(args.run, _device(args.device))
+    ds = load_dataset(args.dataset)
+    metrics, _ = evaluate_run(run, ds, args.split)
+    if args.json:
+        print(json.dumps(metrics))
+    else:
+        for key, value in metrics.items():
+            print(f"{key:>20}: {value:.4f}" if isinstance(value, float) else f"{key:>20}: {value}")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    metrics = run_demo(args.output, device=_device(args.device))
+    keys = ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "train_seconds", "render_fps", "total_seconds")
+    print(json.dumps({k: metrics[k] for k in keys}, indent=1))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``adnerf`` command."""
     parser = argparse.ArgumentParser(prog="adnerf", description="Audio-driven neural radiance fields for talking heads.")
@@ -132,6 +247,55 @@ def build_parser() -> argparse.ArgumentParser:
     feats.add_argument("--model-dir", default=None, help="local wav2vec2 / HuBERT model directory for --kind wav2vec2")
     feats.add_argument("--fps", type=float, default=None, help="frame rate for audio-only input (default 25); overrides a video's timestamps")
     feats.set_defaults(func=_cmd_features)
+
+    demo = sub.add_parser("demo", help="synthesise a talking head, train, render held-out audio three ways, evaluate")
+    demo.add_argument("-o", "--output", default="adnerf_demo", help="output folder (default adnerf_demo); re-running resumes")
+    demo.add_argument("--device", default="cpu", help="cpu or cuda")
+    demo.set_defaults(func=_cmd_demo)
+
+    synth = sub.add_parser("synth", help="create a synthetic talking-head dataset with exact ground truth")
+    synth.add_argument("-o", "--output", required=True, help="dataset folder to create")
+    synth.add_argument("--seconds", type=float, default=18.0)
+    synth.add_argument("--size", type=int, default=128, help="frame width and height in pixels")
+    synth.add_argument("--fps", type=float, default=25.0)
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--voice", choices=("auto", "formant", "espeak"), default="auto", help="speech source (auto: espeak-ng when installed)")
+    synth.add_argument("--features", choices=("logmel", "phonemes"), default="logmel", help="audio features stored with the dataset")
+    synth.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+    synth.set_defaults(func=_cmd_synth)
+
+    tr = sub.add_parser("train", help="train the head (stage 1) and torso (stage 2) fields on a dataset")
+    tr.add_argument("dataset", help="dataset folder")
+    tr.add_argument("-o", "--output", required=True, help="run folder")
+    tr.add_argument("--stage", choices=("head", "torso", "all"), default="all")
+    tr.add_argument("--iters", type=int, default=None, help="iterations of the stage (with all: head; the torso gets half)")
+    tr.add_argument("--device", default="cpu", help="cpu or cuda")
+    tr.add_argument("--config", default=None, help="JSON file of TrainConfig fields (e.g. {\"rays\": 2048, \"preset\": \"paper\"})")
+    tr.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
+    tr.set_defaults(func=_cmd_train)
+
+    rn = sub.add_parser("render", help="render a trained run saying new audio, as an mp4 with that audio")
+    rn.add_argument("run", help="run folder")
+    rn.add_argument("--audio", required=True, help="speech (any audio or video file)")
+    poses = rn.add_mutually_exclusive_group()
+    poses.add_argument("--poses", default=None, help=".npy of (N, 4, 4) head poses, one per output frame")
+    poses.add_argument("--from", dest="from_dataset", default=None, help="take the pose track of this dataset (played back and forth)")
+    rn.add_argument("--yaw", type=float, default=0.0, help="degrees added about the head's vertical axis")
+    rn.add_argument("--pitch", type=float, default=0.0, help="degrees added about the horizontal axis")
+    rn.add_argument("--roll", type=float, default=0.0, help="degrees added about the viewing axis")
+    rn.add_argument("--background", default=None, help="replacement background image")
+    rn.add_argument("--frames", default=None, help="also write the frames as PNGs into this folder")
+    rn.add_argument("--device", default="cpu", help="cpu or cuda")
+    rn.add_argument("-o", "--output", required=True, help="output .mp4")
+    rn.set_defaults(func=_cmd_render)
+
+    ev = sub.add_parser("evaluate", help="PSNR / SSIM (full frame and mouth) and mouth-opening correlation on held-out frames")
+    ev.add_argument("run", help="run folder")
+    ev.add_argument("dataset", help="dataset folder")
+    ev.add_argument("--split", choices=("train", "test"), default="test")
+    ev.add_argument("--device", default="cpu", help="cpu or cuda")
+    ev.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    ev.set_defaults(func=_cmd_evaluate)
     return parser
 
 
@@ -141,6 +305,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
+    except _user_errors() as exc:
+        print(f"adnerf: error: {exc}", file=sys.stderr)
+        return 2
     except CliError as exc:
         print(f"adnerf: error: {exc}", file=sys.stderr)
         return 2

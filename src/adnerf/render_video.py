@@ -1,0 +1,223 @@
+"""Render a trained talking head saying new audio: poses, pose edits, backgrounds, mp4 output.
+
+The audio (any file PyAV reads: another speaker, another language) gives the number of frames,
+``floor(duration * fps)`` at the run's frame rate, and one feature window per frame, aligned by
+time exactly as in training. Head poses come from a ``.npy`` file of ``(N, 4, 4)`` transforms,
+from a dataset's pose track (played forwards and backwards to cover the audio), or by default from
+the training dataset. Yaw, pitch and roll (degrees) rotate every pose about the head centre.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+
+from .features import FeatureSpec, speech_windows
+from .io import AudioTrack, MediaError, read_audio, write_video
+from .pose import HeadPose
+from .talking_head import FrameRender, render_frame
+from .train import Run
+
+__all__ = ["RenderError", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
+
+MODEL_RATE = 16000
+
+
+class RenderError(ValueError):
+    """Inputs to rendering that cannot be used (silent audio, wrong pose count, bad image)."""
+
+
+def check_speech(audio: AudioTrack, where: str, *, level: float = 0.01, min_fraction: float = 0.05) -> None:
+    """Raise :class:`RenderError` unless some of ``audio`` is louder than silence.
+
+    Audio counts as containing sound when at least ``min_fraction`` of its 20 ms blocks have an
+    RMS above ``level`` (-40 dBFS).
+    """
+    x = np.asarray(audio.samples, dtype=np.float64)
+    block = max(1, int(0.02 * audio.sample_rate))
+    n = len(x) // block
+    if n == 0:
+        raise RenderError(f"{where}: the audio is shorter than 20 ms")
+    rms = np.sqrt((x[: n * block].reshape(n, block) ** 2).mean(axis=1))
+    if (rms > level).mean() < min_fraction:
+        raise RenderError(f"{where}: the audio has no speech (it is silent or nearly silent: {100 * (rms > level).mean():.1f}% of it above -40 dBFS)")
+
+
+def load_background(path: str | Path, height: int, width: int) -> np.ndarray:
+    """An RGB image resized (centre crop to the aspect, then area resampling) to ``(height, width, 3)`` float [0, 1]."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise RenderError(f"{path}: missing or unreadable image")
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+    h, w = img.shape[:2]
+    target = width / height
+    if w / h > target:
+        cw = int(round(h * target))
+        img = img[:, (w - cw) // 2 : (w - cw) // 2 + cw]
+    else:
+        ch = int(round(w / target))
+        img = img[(h - ch) // 2 : (h - ch) // 2 + ch]
+    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def pingpong(poses: np.ndarray, n: int) -> np.ndarray:
+    """``n`` poses taken from ``poses`` forwards, then backwards, and so on (no jump at the ends)."""
+    m = len(poses)
+    if m == 1:
+        return np.repeat(poses, n, axis=0)
+    period = 2 * (m - 1)
+    k = np.arange(n) % period
+    return poses[np.where(k < m, k, period - k)]
+
+
+def load_poses(path: str | Path, n: int) -> np.ndarray:
+    """A ``.npy`` file of ``(n, 4, 4)`` poses; anything else is a :class:`RenderError`."""
+    p = Path(path)
+    try:
+        poses = np.load(p)
+    except (OSError, ValueError) as exc:
+        raise RenderError(f"{p}: not a readable .npy file of poses ({exc})") from exc
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise RenderError(f"{p}: poses must have shape (N, 4, 4); got {poses.shape}")
+    if len(poses) != n:
+        raise RenderError(f"{p}: has {len(poses)} poses but the audio gives {n} frames at this fps; give one pose per frame")
+    return poses.astype(np.float64)
+
+
+@dataclass
+class RenderedClip:
+    """Rendered frames with what they were rendered from.
+
+    Attributes:
+        frames: ``(N, H, W, 3)`` uint8.
+        head_opacity: ``(N, H, W)`` float32.
+        torso_opacity: ``(N, H, W)`` float32.
+        seconds: Wall time of the rendering.
+    """
+
+    frames: np.ndarray
+    head_opacity: np.ndarray
+    torso_opacity: np.ndarray
+    seconds: float
+
+
+def render_frames(
+    run: Run,
+    windows: np.ndarray,
+    poses: np.ndarray,
+    plate: np.ndarray,
+    *,
+    yaw: float = 0.0,
+    pitch: float = 0.0,
+    roll: float = 0.0,
+    progress: Callable[[int, int], None] | None = None,
+) -> RenderedClip:
+    """Render one frame per feature window.
+
+    Args:
+        run: A loaded run.
+        windows: Audio feature windows ``(N, 16, D)``.
+        poses: Head poses ``(N, 4, 4)``.
+        plate: Background ``(H, W, 3)`` float in [0, 1].
+        yaw: Added rotation about the head's vertical axis through its centre, degrees.
+        pitch: About the horizontal axis, degrees.
+        roll: About the viewing axis, degrees.
+        progress: Called as ``progress(done, total)``.
+    """
+    import time
+
+    model = run.model
+    dev = next(model.parameters()).device
+    meta = run.meta
+    if len(poses) != len(windows):
+        raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
+    if plate.shape != (meta["height"], meta["width"], 3):
+        raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
+    from .data import SceneMeta
+
+    camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
+    plate_t = torch.as_tensor(plate, dtype=torch.float32, device=dev)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        codes = model.all_codes(torch.as_tensor(windows, device=dev), run.smooth_audio)
+    n = len(windows)
+    H, W = camera.height, camera.width
+    frames = np.empty((n, H, W, 3), dtype=np.uint8)
+    head_op = np.empty((n, H, W), dtype=np.float32)
+    torso_op = np.empty((n, H, W), dtype=np.float32)
+    angles = [math.radians(a) for a in (yaw, pitch, roll)]
+    for i in range(n):
+        pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev)).perturbed(*angles)
+        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, torso=run.has_torso)
+        frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
+        head_op[i] = out.head_opacity.cpu().numpy()
+        torso_op[i] = out.torso_opacity.cpu().numpy()
+        if progress is not None:
+            progress(i + 1, n)
+    return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0)
+
+
+def audio_frames(audio: AudioTrack, fps: float, feature_kind: str, where: str) -> tuple[AudioTrack, np.ndarray]:
+    """The audio resampled to 16 kHz and its feature windows, one per frame of ``fps``."""
+    check_speech(audio, where)
+    n = int(math.floor(audio.duration * fps))
+    if n < 1:
+        raise RenderError(f"{where}: the audio is shorter than one frame at {fps} fps")
+    times = audio.start + np.arange(n) / fps
+    return audio, speech_windows(audio, times, FeatureSpec(kind=feature_kind))
+
+
+def render_audio_video(
+    run: Run,
+    audio_path: str | Path,
+    out: str | Path,
+    *,
+    poses_file: str | Path | None = None,
+    from_dataset: str | Path | None = None,
+    yaw: float = 0.0,
+    pitch: float = 0.0,
+    roll: float = 0.0,
+    background: str | Path | None = None,
+    frames_dir: str | Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Render the run saying the audio of ``audio_path`` and write an mp4 with that audio.
+
+    Returns:
+        A summary: frames, seconds of audio, render wall time and frames per second, output path.
+    """
+
+    if poses_file is not None and from_dataset is not None:
+        raise RenderError("give either a pose file or a dataset to take poses from, not both")
+    try:
+        audio = read_audio(audio_path, sample_rate=MODEL_RATE)
+    except MediaError as exc:
+        raise RenderError(str(exc)) from exc
+    meta = run.meta
+    audio, windows = audio_frames(audio, meta["fps"], meta["feature_kind"], str(audio_path))
+    n = len(windows)
+    if poses_file is not None:
+        poses = load_poses(poses_file, n)
+    else:
+        source = Path(from_dataset) if from_dataset is not None else run.dataset
+        if not (source / "poses.npy").exists():
+            raise RenderError(f"{source}: no poses.npy to take poses from")
+        poses = pingpong(np.load(source / "poses.npy"), n)
+    if background is not None:
+        plate = load_background(background, meta["height"], meta["width"])
+    else:
+        plate = load_background(run.root / "background.png", meta["height"], meta["width"])
+    clip = render_frames(run, windows, poses, plate, yaw=yaw, pitch=pitch, roll=roll, progress=progress)
+    write_video(out, clip.frames, meta["fps"], AudioTrack(audio.samples, audio.sample_rate, 0.0))
+    if frames_dir is not None:
+        d = Path(frames_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        for i, f in enumerate(clip.frames):
+            cv2.imwrite(str(d / f"{i:06d}.png"), cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9)}

@@ -1,0 +1,320 @@
+"""The talking-head model: audio encoders, head and torso fields, and how a frame is put together.
+
+A frame is composed as in AD-NeRF: the head field (canonical space, warped by the head pose,
+conditioned on the audio code) is rendered over the background plate; the torso field (camera
+space, conditioned on the audio code and the head pose) is rendered over that result::
+
+    head_on_plate = head.rgb + (1 - head.opacity) * plate
+    frame         = torso.rgb + (1 - torso.opacity) * head_on_plate
+
+Rays are sampled only inside the head box (moved with the head pose) and the torso box; rays that
+miss a box get that layer's opacity 0 without evaluating anything.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Callable, Literal
+
+import torch
+from torch import Tensor, nn
+
+from .audio import AudioAttNet, AudioNet
+from .cameras import Camera
+from .compositor import Composite
+from .data import SceneMeta
+from .fields import POSE_CODE_DIM, FieldConfig, check_config_keys, HeadField, TorsoField, fast_config, paper_config
+from .pose import HeadPose
+from .rays import RayBundle
+from .renderer import RenderOutput, VolumeRenderer
+from .samplers import AABBBounds, Bounds, PosedAABBBounds
+
+__all__ = ["FrameRender", "ModelConfig", "TalkingHead", "model_config", "render_frame", "render_head", "render_torso"]
+
+
+@dataclass
+class ModelConfig:
+    """Architecture and sampling of a :class:`TalkingHead`.
+
+    Attributes:
+        feature_dim: Audio feature width ``D``.
+        head: Coarse head field.
+        head_fine: Fine head field.
+        torso: Coarse torso field (``cond_dim = audio_dim + 9``).
+        torso_fine: Fine torso field.
+        head_aabb: Head box, canonical space.
+        torso_aabb: Torso box, camera space.
+        audio_dim: Audio code width (paper: 64).
+        att_len: Frames the audio attention looks at (paper: 8).
+        head_samples: ``(coarse, fine)`` samples per ray for the head.
+        torso_samples: ``(coarse, fine)`` samples per ray for the torso.
+    """
+
+    feature_dim: int
+    head: FieldConfig
+    head_fine: FieldConfig
+    torso: FieldConfig
+    torso_fine: FieldConfig
+    head_aabb: tuple[tuple[float, float, float], tuple[float, float, float]]
+    torso_aabb: tuple[tuple[float, float, float], tuple[float, float, float]]
+    audio_dim: int = 64
+    att_len: int = 8
+    head_samples: tuple[int, int] = (16, 16)
+    torso_samples: tuple[int, int] = (16, 16)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable form."""
+        d = asdict(self)
+        for key in ("head", "head_fine", "torso", "torso_fine"):
+            d[key] = getattr(self, key).to_dict()
+        return d
+
+    @staticmethod
+    def from_dict(d: dict) -> "ModelConfig":
+        """Inverse of :meth:`to_dict` (unknown keys are an error)."""
+        check_config_keys(d, ModelConfig, "model config")
+        d = dict(d)
+        for key in ("head", "head_fine", "torso", "torso_fine"):
+            d[key] = FieldConfig.from_dict(d[key])
+        for key in ("head_aabb", "torso_aabb"):
+            d[key] = tuple(tuple(v) for v in d[key])
+        for key in ("head_samples", "torso_samples"):
+            if key in d:
+                d[key] = tuple(d[key])
+        return ModelConfig(**d)
+
+
+def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", audio_dim: int = 64) -> ModelConfig:
+    """The model for a dataset.
+
+    ``"fast"``: tri-plane grids with small MLPs (the default; what trains on a CPU in minutes).
+    ``"paper"``: AD-NeRF's 8x256 positional-encoding MLPs with 64 + 128 samples per ray.
+    """
+    torso_cond = audio_dim + POSE_CODE_DIM
+    if preset == "paper":
+        return ModelConfig(
+            feature_dim=meta.feature_dim,
+            head=paper_config(audio_dim),
+            head_fine=paper_config(audio_dim),
+            torso=paper_config(torso_cond),
+            torso_fine=paper_config(torso_cond),
+            head_aabb=meta.head_aabb,
+            torso_aabb=meta.torso_aabb,
+            audio_dim=audio_dim,
+            head_samples=(64, 128),
+            torso_samples=(64, 128),
+        )
+    if preset != "fast":
+        raise ValueError(f"unknown model preset {preset!r}; choose fast or paper")
+    head = fast_config(audio_dim, *meta.head_aabb)
+    head_coarse = FieldConfig.from_dict({**head.to_dict(), "grid_max_resolution": 64, "width": 32})
+    head_fine = FieldConfig.from_dict({**head.to_dict(), "grid_max_resolution": 256, "grid_levels": 4})
+    torso = fast_config(torso_cond, *meta.torso_aabb)
+    torso_coarse = FieldConfig.from_dict({**torso.to_dict(), "grid_max_resolution": 64, "width": 32})
+    torso_fine = FieldConfig.from_dict({**torso.to_dict(), "grid_max_resolution": 256})
+    return ModelConfig(
+        feature_dim=meta.feature_dim,
+        head=head_coarse,
+        head_fine=head_fine,
+        torso=torso_coarse,
+        torso_fine=torso_fine,
+        head_aabb=meta.head_aabb,
+        torso_aabb=meta.torso_aabb,
+        audio_dim=audio_dim,
+    )
+
+
+class TalkingHead(nn.Module):
+    """Audio encoders plus coarse/fine head and torso fields.
+
+    Args:
+        config: The architecture.
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.audio_net = AudioNet(config.feature_dim, config.audio_dim)
+        self.att_net = AudioAttNet(config.audio_dim, config.att_len)
+        self.head = HeadField(config.head)
+        self.head_fine = HeadField(config.head_fine)
+        self.torso = TorsoField(config.torso, config.audio_dim)
+        self.torso_fine = TorsoField(config.torso_fine, config.audio_dim)
+        # Per-feature standardisation of the audio windows, fitted on the training frames.
+        self.register_buffer("feature_mean", torch.zeros(config.feature_dim))
+        self.register_buffer("feature_std", torch.ones(config.feature_dim))
+
+    def fit_feature_scale(self, windows: Tensor) -> None:
+        """Set the standardisation from training windows ``(N, 16, D)`` (a zero std is left at 1)."""
+        flat = windows.reshape(-1, windows.shape[-1]).to(self.feature_mean)
+        self.feature_mean.copy_(flat.mean(dim=0))
+        std = flat.std(dim=0)
+        self.feature_std.copy_(torch.where(std > 0, std, torch.ones_like(std)))
+
+    def audio_codes(self, windows: Tensor) -> Tensor:
+        """Per-frame codes ``(N, audio_dim)`` from feature windows ``(N, 16, D)``."""
+        x = (windows.to(self.feature_mean) - self.feature_mean) / self.feature_std
+        return self.audio_net(x)
+
+    def smoothed_code(self, codes: Tensor, index: int) -> Tensor:
+        """AudioAttNet over the ``att_len`` codes around frame ``index`` (clamped at the ends)."""
+        n = codes.shape[0]
+        half = self.config.att_len // 2
+        idx = torch.arange(index - half, index - half + self.config.att_len, device=codes.device).clamp(0, n - 1)
+        return self.att_net(codes[idx])
+
+    def frame_code(self, windows: Tensor, index: int, smooth: bool) -> Tensor:
+        """The audio code ``(audio_dim,)`` of frame ``index`` from all windows ``(N, 16, D)``.
+
+        With ``smooth``, only the ``att_len`` neighbouring windows are encoded and filtered.
+        """
+        if not smooth:
+            return self.audio_codes(windows[index : index + 1])[0]
+        n = windows.shape[0]
+        half = self.config.att_len // 2
+        idx = torch.arange(index - half, index - half + self.config.att_len, device=windows.device).clamp(0, n - 1)
+        return self.att_net(self.audio_codes(windows[idx]))
+
+    def all_codes(self, windows: Tensor, smooth: bool, batch: int = 512) -> Tensor:
+        """Codes ``(N, audio_dim)`` of every frame (smoothed with AudioAttNet when ``smooth``)."""
+        raw = torch.cat([self.audio_codes(windows[i : i + batch]) for i in range(0, windows.shape[0], batch)])
+        if not smooth:
+            return raw
+        return torch.stack([self.smoothed_code(raw, i) for i in range(raw.shape[0])])
+
+
+def _box(aabb: tuple[tuple[float, ...], tuple[float, ...]], like: Tensor) -> tuple[Tensor, Tensor]:
+    return torch.tensor(aabb[0], dtype=like.dtype, device=like.device), torch.tensor(aabb[1], dtype=like.dtype, device=like.device)
+
+
+def head_bounds(config: ModelConfig, pose: HeadPose) -> PosedAABBBounds:
+    """Per-ray bounds of the head box moved by ``pose``."""
+    lo, hi = _box(config.head_aabb, pose.R)
+    return PosedAABBBounds(lo, hi, pose.R, pose.t)
+
+
+def torso_bounds(config: ModelConfig, like: Tensor) -> AABBBounds:
+    """Per-ray bounds of the torso box (camera space)."""
+    lo, hi = _box(config.torso_aabb, like)
+    return AABBBounds(lo, hi)
+
+
+def _render_layer(
+    renderer: VolumeRenderer, coarse: nn.Module, fine: nn.Module, rays: RayBundle, pose: HeadPose, code: Tensor,
+    background: Tensor | None, jitter: bool, generator: torch.Generator | None,
+) -> RenderOutput:
+    return renderer.render_rays(rays, coarse, fine, background=background, jitter=jitter, generator=generator, pose=pose, audio=code)
+
+
+def render_head(
+    model: TalkingHead,
+    rays: RayBundle,
+    pose: HeadPose,
+    code: Tensor,
+    *,
+    background: Tensor | None = None,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+) -> RenderOutput:
+    """Render the head along rays ``(R,)`` for one frame's pose and audio code ``(audio_dim,)``."""
+    renderer = VolumeRenderer(head_bounds(model.config, pose), *model.config.head_samples)
+    return _render_layer(renderer, model.head, model.head_fine, rays, pose, code, background, jitter, generator)
+
+
+def render_torso(
+    model: TalkingHead,
+    rays: RayBundle,
+    pose: HeadPose,
+    code: Tensor,
+    *,
+    background: Tensor | None = None,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+) -> RenderOutput:
+    """Render the torso along rays ``(R,)`` for one frame's head pose and audio code (same arguments)."""
+    renderer = VolumeRenderer(torso_bounds(model.config, rays.origins), *model.config.torso_samples)
+    return _render_layer(renderer, model.torso, model.torso_fine, rays, pose, code, background, jitter, generator)
+
+
+@dataclass
+class FrameRender:
+    """One rendered frame.
+
+    Attributes:
+        rgb: Final colour ``(H, W, 3)`` in ``[0, 1]``.
+        head_opacity: Head opacity ``(H, W)``.
+        torso_opacity: Torso opacity ``(H, W)``.
+        head_on_plate: The head rendered over the plate ``(H, W, 3)`` (the torso's background).
+        head_depth: Head depth along the unit pixel ray ``(H, W)`` (far bound where opacity 0).
+    """
+
+    rgb: Tensor
+    head_opacity: Tensor
+    torso_opacity: Tensor
+    head_on_plate: Tensor
+    head_depth: Tensor
+
+
+def _render_hits(render: Callable[[RayBundle], RenderOutput], rays: RayBundle, bounds: Bounds, chunk: int) -> tuple[Tensor, Composite | None]:
+    """Render only the rays ``(R,)`` whose bounds are non-empty; returns their mask and composite."""
+    near, far = bounds(rays)
+    hit = far > near
+    if not bool(hit.any()):
+        return hit, None
+    sub = rays[hit]
+    parts = [render(sub[i : i + chunk]).final for i in range(0, sub.shape[0], chunk)]
+    return hit, Composite(*(torch.cat([getattr(p, f) for p in parts]) for f in ("rgb", "opacity", "depth", "weights", "residual_transmittance")))
+
+
+@torch.no_grad()
+def render_frame(
+    model: TalkingHead,
+    camera: Camera,
+    pose: HeadPose,
+    code: Tensor,
+    plate: Tensor,
+    *,
+    torso: bool = True,
+    chunk: int = 8192,
+) -> FrameRender:
+    """Render a full frame (no gradients).
+
+    Args:
+        model: The trained model.
+        camera: The static camera.
+        pose: The frame's head pose (single ``R (3, 3)``, ``t (3,)``).
+        code: The frame's audio code ``(audio_dim,)``.
+        plate: Background ``(H, W, 3)`` in ``[0, 1]``.
+        torso: Also render the torso layer (off: the head-only stage-1 picture).
+        chunk: Rays per batch.
+    """
+    H, W = camera.height, camera.width
+    rays = camera.rays().flatten()
+    plate_flat = plate.reshape(-1, 3).to(torch.float32)
+    n = H * W
+    dev = plate_flat.device
+    head_rgb = torch.zeros(n, 3, device=dev)
+    head_opacity = torch.zeros(n, device=dev)
+    head_depth = torch.zeros(n, device=dev, dtype=torch.float64)
+
+    hit, comp = _render_hits(lambda r: render_head(model, r, pose, code), rays, head_bounds(model.config, pose), chunk)
+    if comp is not None:
+        head_rgb[hit] = comp.rgb.to(head_rgb)
+        head_opacity[hit] = comp.opacity.to(head_opacity)
+        head_depth[hit] = comp.depth.to(head_depth)
+    head_on_plate = head_rgb + (1 - head_opacity)[:, None] * plate_flat
+    torso_rgb = torch.zeros(n, 3, device=dev)
+    torso_opacity = torch.zeros(n, device=dev)
+    if torso:
+        hit, comp = _render_hits(lambda r: render_torso(model, r, pose, code), rays, torso_bounds(model.config, rays.origins), chunk)
+        if comp is not None:
+            torso_rgb[hit] = comp.rgb.to(torso_rgb)
+            torso_opacity[hit] = comp.opacity.to(torso_opacity)
+    rgb = torso_rgb + (1 - torso_opacity)[:, None] * head_on_plate
+    return FrameRender(
+        rgb=rgb.reshape(H, W, 3).clamp(0, 1),
+        head_opacity=head_opacity.reshape(H, W),
+        torso_opacity=torso_opacity.reshape(H, W),
+        head_on_plate=head_on_plate.reshape(H, W, 3),
+        head_depth=head_depth.reshape(H, W),
+    )

@@ -1,0 +1,456 @@
+"""Two-stage training, as in AD-NeRF, with atomic resumable checkpoints.
+
+Stage 1 (``head``) trains the audio encoders and the coarse/fine head fields. The target of a
+pixel is the frame where the parsing says *head* and the background plate elsewhere; the plate is
+the background of the volume rendering (through the residual transmittance). Each iteration takes
+one training frame (its pose and audio window, as in the paper) and draws rays among the pixels
+whose ray crosses the head box, a quarter of them around the mouth (where the audio matters and
+which is a small part of the head). AudioAttNet is switched on after ``att_start`` of the iterations.
+
+Losses: the MSE of the coarse and fine colours, plus ``mask_weight`` times the MSE of their
+opacities against the parsing mask of the layer being trained.
+
+Stage 2 (``torso``) freezes the head and the audio encoders and trains the torso fields on the full
+frames, with the stage-1 head rendered over the plate as the torso's background.
+
+A run folder holds ``run.json`` (dataset, model and training configuration), ``background.png``,
+``checkpoint.pt`` (written to a temporary file and renamed, every ``checkpoint_every`` iterations
+and at the end of each stage), ``log.jsonl`` (one JSON object per logged iteration) and
+``head_renders.pt`` (the cached stage-1 renders that stage 2 trains against).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Literal
+
+import torch
+import torch.nn.functional as F
+from tqdm.auto import tqdm
+
+from .atomic import atomic_path
+from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
+from .fields import check_config_keys
+from .renderer import RenderOutput
+from .talking_head import ModelConfig, TalkingHead, head_bounds, model_config, render_frame, render_head, render_torso, torso_bounds
+
+__all__ = ["RunError", "TrainConfig", "load_run", "train"]
+
+RUN_FORMAT = "adnerf-run"
+RUN_VERSION = 1
+
+
+class RunError(RuntimeError):
+    """A run folder is missing, incomplete, of another version, or would be overwritten."""
+
+
+@dataclass
+class TrainConfig:
+    """Training schedule.
+
+    Attributes:
+        head_iters: Stage-1 iterations.
+        torso_iters: Stage-2 iterations.
+        rays: Rays per iteration (all from one frame).
+        lr: Initial learning rate of the fields (Adam).
+        lr_audio: Initial learning rate of the audio encoders.
+        lr_final: Final learning rate as a fraction of the initial one (exponential decay).
+        att_start: Fraction of stage 1 after which AudioAttNet smooths the audio codes.
+        mouth_rays: Fraction of each stage-1 batch drawn around the mouth (the dataset's mouth point
+            projected with the frame's pose, a square of side ``MOUTH_CROP`` units); the rest is
+            drawn from the whole head box.
+        mask_weight: Weight of the opacity loss against the parsing (stage 1: head pixels opaque,
+            others clear; stage 2: torso pixels). Without it a static plate lets a layer stay
+            half transparent and mix in the plate's colour, which a new background exposes.
+        checkpoint_every: Iterations between checkpoints.
+        log_every: Iterations between log lines.
+        seed: Seed of the initialisation and of the ray sampling.
+        preset: Field preset (``"fast"`` or ``"paper"``; see :func:`~adnerf.talking_head.model_config`).
+    """
+
+    head_iters: int = 3000
+    torso_iters: int = 1000
+    rays: int = 1024
+    lr: float = 1e-2
+    lr_audio: float = 2e-3
+    lr_final: float = 0.1
+    att_start: float = 0.6
+    mouth_rays: float = 0.25
+    mask_weight: float = 0.1
+    checkpoint_every: int = 250
+    log_every: int = 25
+    seed: int = 0
+    preset: str = "fast"
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` on impossible settings."""
+        if self.head_iters < 0 or self.torso_iters < 0:
+            raise ValueError("iteration counts must be >= 0")
+        if self.rays < 1 or self.checkpoint_every < 1 or self.log_every < 1:
+            raise ValueError("rays, checkpoint_every and log_every must be >= 1")
+        if not (self.lr > 0 and self.lr_audio > 0 and 0 < self.lr_final <= 1):
+            raise ValueError("learning rates must be positive and lr_final in (0, 1]")
+        if not 0 <= self.att_start <= 1:
+            raise ValueError("att_start must lie in [0, 1]")
+        if self.mask_weight < 0:
+            raise ValueError("mask_weight must be >= 0")
+        if not 0 <= self.mouth_rays <= 1:
+            raise ValueError("mouth_rays must lie in [0, 1]")
+
+    @staticmethod
+    def from_dict(d: dict) -> "TrainConfig":
+        """From a dict (a ``--config`` JSON file); unknown keys are an error."""
+        check_config_keys(d, TrainConfig, "training config")
+        return TrainConfig(**d)
+
+
+def _write_json_atomic(path: Path, doc: dict) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(doc, indent=1))
+
+
+def _save_atomic(obj: object, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+@dataclass
+class Run:
+    """A loaded run: its configuration and model (on the requested device).
+
+    Attributes:
+        root: The run folder.
+        dataset: The dataset folder it was trained on.
+        model: The model with the latest checkpoint's weights.
+        train_config: The schedule.
+        head_step: Finished stage-1 iterations.
+        torso_step: Finished stage-2 iterations.
+        meta: The dataset's ``meta.json`` content (camera, fps, boxes, feature kind).
+    """
+
+    root: Path
+    dataset: Path
+    model: TalkingHead
+    train_config: TrainConfig
+    head_step: int
+    torso_step: int
+    meta: dict
+
+    @property
+    def smooth_audio(self) -> bool:
+        """Whether AudioAttNet was on at the end of what was trained."""
+        return self.head_step > self.train_config.att_start * self.train_config.head_iters
+
+    @property
+    def has_torso(self) -> bool:
+        """Whether stage 2 ran at all."""
+        return self.torso_step > 0
+
+
+def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
+    """Load a run folder's configuration and latest checkpoint.
+
+    Raises:
+        RunError: Missing folder, ``run.json`` or checkpoint, or another format version.
+    """
+    root = Path(root)
+    if not (root / "run.json").exists():
+        raise RunError(f"{root}: not an adnerf run (no run.json); train one with `adnerf train DATASET -o {root}`")
+    doc = json.loads((root / "run.json").read_text())
+    if doc.get("format") != RUN_FORMAT or doc.get("version") != RUN_VERSION:
+        raise RunError(f"{root}/run.json: format {doc.get('format')!r} version {doc.get('version')!r}; this adnerf reads {RUN_FORMAT} version {RUN_VERSION}")
+    ckpt_path = root / "checkpoint.pt"
+    if not ckpt_path.exists():
+        raise RunError(f"{root}: no checkpoint.pt yet (training has not written one)")
+    ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+    model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
+    model.load_state_dict(ckpt["model"])
+    model.eval()
+    return Run(root, Path(doc["dataset"]), model, TrainConfig.from_dict(doc["train"]), ckpt["head_step"], ckpt["torso_step"], doc["meta"])
+
+
+class _Schedule:
+    """Exponential decay from each group's initial rate ``base`` to ``final * base`` at ``iters``.
+
+    The initial rates are given, not read from the optimizer: a resumed optimizer carries the
+    decayed rates of its checkpoint.
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer, base: list[float], iters: int, final: float) -> None:
+        self.optimizer, self.base, self.iters, self.final = optimizer, base, max(iters, 1), final
+
+    def set(self, step: int) -> float:
+        factor = self.final ** (min(step, self.iters) / self.iters)
+        for g, lr in zip(self.optimizer.param_groups, self.base):
+            g["lr"] = lr * factor
+        return self.base[0] * factor
+
+
+def _optimise(out: RenderOutput, target: torch.Tensor, mask: torch.Tensor, mask_weight: float, optimizer: torch.optim.Optimizer) -> tuple[float, float]:
+    """One step on the MSE of the coarse and fine colours plus ``mask_weight`` times the MSE of
+    their opacities against the parsing mask; returns ``(loss, fine colour MSE)``."""
+    fine_mse = F.mse_loss(out.final.rgb.float(), target)
+    loss = F.mse_loss(out.coarse.rgb.float(), target) + fine_mse
+    if mask_weight > 0:
+        m = mask.float()
+        loss = loss + mask_weight * (F.mse_loss(out.coarse.opacity.float(), m) + F.mse_loss(out.final.opacity.float(), m))
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return float(loss.detach()), float(fine_mse.detach())
+
+
+def _psnr(mse: float) -> float:
+    return -10.0 * math.log10(max(mse, 1e-12))
+
+
+class _Trainer:
+    def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool) -> None:
+        self.root, self.ds, self.tcfg, self.device, self.progress = root, ds, tcfg, device, progress
+        torch.manual_seed(tcfg.seed)
+        self.model = TalkingHead(mcfg).to(device)
+        self.camera = ds.meta.camera(device=device)
+        self.rays = self.camera.rays().flatten()
+        self.frames = torch.as_tensor(ds.frames, device=device).reshape(ds.meta.n_frames, -1, 3).float() / 255.0
+        self.plate = torch.as_tensor(ds.background, device=device).reshape(-1, 3).float() / 255.0
+        labels = torch.as_tensor(ds.parsing, device=device).reshape(ds.meta.n_frames, -1)
+        self.is_head, self.is_torso = labels == LABEL_HEAD, labels == LABEL_TORSO
+        self.windows = torch.as_tensor(ds.features, device=device)
+        self.train_frames = torch.as_tensor(ds.meta.train, device=device)
+        self.pixel_index = torch.arange(ds.meta.width * ds.meta.height, device=device)
+        m = self.model
+        m.fit_feature_scale(self.windows[self.train_frames])
+        self.opt_head = torch.optim.Adam(
+            [
+                {"params": list(m.head.parameters()) + list(m.head_fine.parameters()), "lr": tcfg.lr},
+                {"params": list(m.audio_net.parameters()) + list(m.att_net.parameters()), "lr": tcfg.lr_audio},
+            ],
+            betas=(0.9, 0.99),
+        )
+        self.opt_torso = torch.optim.Adam(list(m.torso.parameters()) + list(m.torso_fine.parameters()), lr=tcfg.lr, betas=(0.9, 0.99))
+        self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
+        self.head_step = self.torso_step = 0
+        self.elapsed = {"head": 0.0, "torso": 0.0}
+
+    # ---- checkpoints
+    def save(self) -> None:
+        state = {
+            "model": self.model.state_dict(),
+            "opt_head": self.opt_head.state_dict(),
+            "opt_torso": self.opt_torso.state_dict(),
+            "generator": self.generator.get_state(),
+            "head_step": self.head_step,
+            "torso_step": self.torso_step,
+            "elapsed": self.elapsed,
+        }
+        _save_atomic(state, self.root / "checkpoint.pt")
+
+    def load(self) -> None:
+        ckpt = torch.load(self.root / "checkpoint.pt", map_location=self.device, weights_only=False)
+        self.model.load_state_dict(ckpt["model"])
+        self.opt_head.load_state_dict(ckpt["opt_head"])
+        self.opt_torso.load_state_dict(ckpt["opt_torso"])
+        self.generator.set_state(ckpt["generator"])
+        self.head_step, self.torso_step, self.elapsed = ckpt["head_step"], ckpt["torso_step"], ckpt["elapsed"]
+
+    def log(self, row: dict) -> None:
+        with open(self.root / "log.jsonl", "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+    # ---- sampling
+    def pick_frame(self) -> int:
+        k = int(torch.randint(len(self.train_frames), (1,), generator=self.generator))
+        return int(self.train_frames[k])
+
+    def pick_rays(self, candidates: torch.Tensor, n: int | None = None) -> torch.Tensor:
+        idx = torch.randint(candidates.numel(), (self.tcfg.rays if n is None else n,), generator=self.generator).to(candidates.device)
+        return candidates[idx]
+
+    def mouth_pixels(self, pose) -> torch.Tensor:
+        """Flat indices of the pixels in the square of side ``MOUTH_CROP`` units around the mouth."""
+        mouth = torch.tensor(self.ds.meta.mouth, dtype=pose.R.dtype, device=pose.R.device)
+        p = pose.from_canonical(mouth)
+        uv = self.camera.project(p)
+        half = 0.5 * MOUTH_CROP * self.ds.meta.intrinsics[0] / float(p[2])
+        W = self.camera.width
+        cols = self.pixel_index % W + 0.5
+        rows = self.pixel_index // W + 0.5
+        inside = ((cols - uv[0]).abs() <= half) & ((rows - uv[1]).abs() <= half)
+        return self.pixel_index[inside]
+
+    def code(self, frame: int, smooth: bool) -> torch.Tensor:
+        return self.model.frame_code(self.windows, frame, smooth)
+
+    # ---- stages
+    def _loop(self, stage: str, iters: int, step_fn: Callable[[int], tuple[float, float]], max_steps: int | None) -> None:
+        """Run ``step_fn(step) -> (loss, fine mse)`` until ``iters``; log means over each log window."""
+        start_step = getattr(self, f"{stage}_step")
+        bar = tqdm(total=iters, initial=start_step, desc=f"train {stage}", unit="it", disable=not self.progress, dynamic_ncols=True)
+        window_t, window_n, window_loss, window_mse = time.perf_counter(), 0, 0.0, 0.0
+        done_here = 0
+        while getattr(self, f"{stage}_step") < iters:
+            if max_steps is not None and done_here >= max_steps:
+                break
+            step = getattr(self, f"{stage}_step")
+            t0 = time.perf_counter()
+            loss, mse = step_fn(step)
+            self.elapsed[stage] += time.perf_counter() - t0
+            setattr(self, f"{stage}_step", step + 1)
+            done_here += 1
+            window_n += 1
+            window_loss += loss
+            window_mse += mse
+            bar.update(1)
+            if (step + 1) % self.tcfg.log_every == 0 or step + 1 == iters:
+                now = time.perf_counter()
+                rays_per_s = window_n * self.tcfg.rays / max(now - window_t, 1e-9)
+                loss, psnr = window_loss / window_n, _psnr(window_mse / window_n)
+                window_t, window_n, window_loss, window_mse = now, 0, 0.0, 0.0
+                bar.set_postfix(loss=f"{loss:.2e}", psnr=f"{psnr:.2f}", rays_s=f"{rays_per_s:.0f}")
+                self.log({"stage": stage, "step": step + 1, "loss": loss, "psnr": psnr, "rays_per_s": rays_per_s, "elapsed": self.elapsed[stage]})
+            if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
+                self.save()
+        bar.close()
+
+    def head_stage(self, max_steps: int | None) -> None:
+        tcfg = self.tcfg
+        sched = _Schedule(self.opt_head, [tcfg.lr, tcfg.lr_audio], tcfg.head_iters, tcfg.lr_final)
+        box = head_bounds
+        self.model.train()
+
+        def step_fn(step: int) -> tuple[float, float]:
+            sched.set(step)
+            frame = self.pick_frame()
+            pose = self.ds.head_pose(frame, device=self.device)
+            near, far = box(self.model.config, pose)(self.rays)
+            candidates = torch.nonzero(far > near)[:, 0]
+            mouth = self.mouth_pixels(pose)
+            n_mouth = int(round(tcfg.mouth_rays * tcfg.rays)) if mouth.numel() else 0
+            pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
+            target = torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
+            code = self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters)
+            out = render_head(self.model, self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.generator)
+            return _optimise(out, target, self.is_head[frame, pix], tcfg.mask_weight, self.opt_head)
+
+        self._loop("head", tcfg.head_iters, step_fn, max_steps)
+
+    @torch.no_grad()
+    def head_renders(self) -> torch.Tensor:
+        """Stage-1 renders over the plate of every frame ``(N, H*W, 3)``, cached in the run folder."""
+        path = self.root / "head_renders.pt"
+        if path.exists():
+            cached = torch.load(path, map_location=self.device, weights_only=False)
+            if cached["head_step"] == self.head_step:
+                return cached["renders"].float()
+        self.model.eval()
+        smooth = self.head_step > self.tcfg.att_start * self.tcfg.head_iters
+        codes = self.model.all_codes(self.windows, smooth)
+        plate = self.plate.reshape(self.camera.height, self.camera.width, 3)
+        out = torch.zeros_like(self.frames)
+        for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
+            r = render_frame(self.model, self.camera, self.ds.head_pose(frame, device=self.device), codes[frame], plate, torso=False)
+            out[frame] = r.head_on_plate.reshape(-1, 3)
+        _save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
+        return out
+
+    def torso_stage(self, max_steps: int | None) -> None:
+        tcfg = self.tcfg
+        if self.head_step < tcfg.head_iters:
+            raise RunError(f"stage 2 needs a finished stage 1 ({self.head_step}/{tcfg.head_iters} head iterations); run --stage head first")
+        backgrounds = self.head_renders()
+        smooth = self.head_step > tcfg.att_start * tcfg.head_iters
+        with torch.no_grad():
+            codes = self.model.all_codes(self.windows, smooth)
+        near, far = torso_bounds(self.model.config, self.rays.origins)(self.rays)
+        candidates = torch.nonzero(far > near)[:, 0]
+        sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
+        self.model.train()
+
+        def step_fn(step: int) -> tuple[float, float]:
+            sched.set(step)
+            frame = self.pick_frame()
+            pose = self.ds.head_pose(frame, device=self.device)
+            pix = self.pick_rays(candidates)
+            target = self.frames[frame, pix]
+            out = render_torso(self.model, self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.generator)
+            return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso)
+
+        self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
+
+
+def train(
+    dataset: str | Path,
+    run_dir: str | Path,
+    *,
+    stage: Literal["head", "torso", "all"] = "all",
+    config: TrainConfig | None = None,
+    device: str = "cpu",
+    resume: bool = False,
+    progress: bool = True,
+    max_steps: int | None = None,
+) -> Path:
+    """Train (or resume training) a talking head on a dataset.
+
+    Args:
+        dataset: Dataset folder (see :mod:`adnerf.data`).
+        run_dir: Run folder to create (or to resume).
+        stage: ``"head"``, ``"torso"`` or ``"all"`` (head, then torso).
+        config: Schedule; on resume, ``None`` keeps the stored one and a given one replaces it
+            (e.g. to train longer).
+        device: ``"cpu"`` or ``"cuda"``.
+        resume: Continue from ``run_dir/checkpoint.pt``; without it an existing run is an error.
+        progress: Show progress bars.
+        max_steps: Stop this call after this many iterations (checkpoints as usual); for tests
+            and for splitting long runs.
+
+    Returns:
+        The run folder.
+    """
+    if stage not in ("head", "torso", "all"):
+        raise ValueError(f"stage must be head, torso or all; got {stage!r}")
+    root = Path(run_dir)
+    ds = load_dataset(dataset, truth=False)
+    run_json = root / "run.json"
+    if resume:
+        if not run_json.exists():
+            raise RunError(f"{root}: nothing to resume (no run.json); drop --resume to start a new run")
+        doc = json.loads(run_json.read_text())
+        if doc.get("format") != RUN_FORMAT or doc.get("version") != RUN_VERSION:
+            raise RunError(f"{run_json}: not a run of this adnerf version")
+        mcfg = ModelConfig.from_dict(doc["model"])
+        tcfg = config or TrainConfig.from_dict(doc["train"])
+    else:
+        if run_json.exists() or (root / "checkpoint.pt").exists():
+            raise RunError(f"{root}: a run already exists there; pass --resume to continue it or choose another folder")
+        tcfg = config or TrainConfig()
+        mcfg = model_config(ds.meta, tcfg.preset)  # type: ignore[arg-type]
+    tcfg.validate()
+    if mcfg.feature_dim != ds.meta.feature_dim:
+        raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")
+    root.mkdir(parents=True, exist_ok=True)
+    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
+    _write_json_atomic(
+        run_json,
+        {"format": RUN_FORMAT, "version": RUN_VERSION, "dataset": str(Path(dataset).resolve()), "model": mcfg.to_dict(), "train": asdict(tcfg), "meta": meta},
+    )
+    shutil.copyfile(Path(dataset) / "background.png", root / "background.png")
+    trainer = _Trainer(root, ds, mcfg, tcfg, device, progress)
+    if resume and (root / "checkpoint.pt").exists():
+        trainer.load()
+    budget = max_steps
+    if stage in ("head", "all"):
+        before = trainer.head_step
+        trainer.head_stage(budget)
+        if budget is not None:
+            budget -= trainer.head_step - before
+    if stage == "torso" or (stage == "all" and tcfg.torso_iters > 0 and (budget is None or budget > 0)):
+        trainer.torso_stage(budget)
+    if not (root / "checkpoint.pt").exists():
+        trainer.save()
+    return root
+

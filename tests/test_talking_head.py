@@ -1,0 +1,176 @@
+"""The product end to end on a tiny synthetic scene: dataset, training, resume, rendering, errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from adnerf.cli import main
+from adnerf.data import VERSION, DatasetError, load_dataset, write_wav
+from adnerf.evaluate import mouth_darkness, evaluate_run, mouth_boxes
+from adnerf.io import AudioTrack, read_audio, read_video
+from adnerf.render_video import RenderError, check_speech, load_poses, pingpong, render_frames
+from adnerf.synth import SynthConfig, synthesize
+from adnerf.train import RunError, TrainConfig, load_run, train
+
+TINY = SynthConfig(seconds=1.6, size=32, voice="formant", seed=3)
+TINY_TRAIN = TrainConfig(head_iters=24, torso_iters=12, rays=128, log_every=4, checkpoint_every=8)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return synthesize(tmp_path_factory.mktemp("tiny") / "data", TINY)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return train(tiny, tmp_path_factory.mktemp("tiny_run") / "run", config=TINY_TRAIN, progress=False)
+
+
+def test_synthetic_dataset_is_consistent(tiny: Path) -> None:
+    ds = load_dataset(tiny)
+    n = round(TINY.seconds * TINY.fps)
+    assert ds.frames.shape == (n, 32, 32, 3) and ds.features.shape[:2] == (n, 16)
+    assert ds.truth is not None and ds.truth.jaw.min() >= 0 and ds.truth.jaw.max() <= 1
+    # Labels, depth and pixels agree: person pixels have a surface, background pixels show the plate.
+    person = ds.truth.parsing > 0
+    assert np.isfinite(ds.truth.depth[person]).all() and np.isinf(ds.truth.depth[~person]).all()
+    assert np.array_equal(ds.frames[~person], np.broadcast_to(ds.background, ds.frames.shape)[~person])
+    assert (ds.parsing == 1).any() and (ds.parsing == 2).any()
+    # The camera sees the head centre where the pose puts it.
+    uv = ds.meta.camera().project(torch.as_tensor(ds.poses[:, :3, 3]))
+    centre = np.round(uv.numpy()).astype(int)
+    assert all(ds.parsing[i, y, x] == 1 for i, (x, y) in enumerate(centre))
+    assert set(ds.meta.train).isdisjoint(ds.meta.test) and max(ds.meta.train) < min(ds.meta.test)
+    video = read_video(tiny / "video.mp4")
+    assert video.frames.shape == ds.frames.shape and video.audio is not None
+
+
+def test_synthesis_is_deterministic(tiny: Path, tmp_path: Path) -> None:
+    again = load_dataset(synthesize(tmp_path / "again", TINY))
+    first = load_dataset(tiny)
+    assert np.array_equal(again.frames, first.frames) and np.array_equal(again.poses, first.poses)
+
+
+def test_mouth_measure_follows_the_true_jaw(tmp_path: Path) -> None:
+    ds = load_dataset(synthesize(tmp_path / "m", SynthConfig(seconds=4.0, size=96, voice="formant", seed=1)))
+    frames = list(range(ds.meta.n_frames))
+    boxes = mouth_boxes(ds, frames)
+    seen = [mouth_darkness(f[y0:y1, x0:x1]) for f, (x0, y0, x1, y1) in zip(ds.frames, boxes)]
+    assert np.corrcoef(seen, ds.truth.jaw)[0, 1] > 0.9
+
+
+def test_dataset_errors(tiny: Path, tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="no such dataset"):
+        load_dataset(tmp_path / "missing")
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny, copy)
+    meta = json.loads((copy / "meta.json").read_text())
+    meta["version"] = VERSION + 1
+    (copy / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="version"):
+        load_dataset(copy)
+    meta["version"] = VERSION
+    meta["n_frames"] += 1
+    (copy / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="missing or unreadable"):
+        load_dataset(copy)
+
+
+def test_training_lowers_the_loss_and_renders_mp4_with_audio(tiny: Path, tiny_run: Path, tmp_path: Path) -> None:
+    rows = [json.loads(line) for line in (tiny_run / "log.jsonl").read_text().splitlines()]
+    head = [r["loss"] for r in rows if r["stage"] == "head"]
+    torso = [r["loss"] for r in rows if r["stage"] == "torso"]
+    assert len(head) == 6 and len(torso) == 3
+    assert np.mean(head[-2:]) < np.mean(head[:2])
+    out = tmp_path / "out.mp4"
+    assert main(["render", str(tiny_run), "--audio", str(tiny / "audio.wav"), "-o", str(out), "--yaw", "5", "--frames", str(tmp_path / "png")]) == 0
+    video = read_video(out)
+    audio = read_audio(tiny / "audio.wav")
+    assert len(video.frames) == int(audio.duration * TINY.fps) == len(list((tmp_path / "png").glob("*.png")))
+    assert abs(video.audio.duration - audio.duration) < 0.05
+    metrics, clip = evaluate_run(load_run(tiny_run), load_dataset(tiny), "test")
+    assert {"psnr", "ssim", "psnr_mouth", "ssim_mouth", "mouth_open_corr"} <= set(metrics)
+    assert 0 < metrics["psnr"] < 100 and clip.frames.shape[0] == len(load_dataset(tiny).meta.test)
+
+
+def test_kill_and_resume_gives_the_same_steps(tiny: Path, tmp_path: Path) -> None:
+    cfg = TrainConfig(head_iters=6, torso_iters=3, rays=64, log_every=1, checkpoint_every=3)
+    straight = train(tiny, tmp_path / "straight", config=cfg, progress=False)
+    killed = tmp_path / "killed"
+    train(tiny, killed, config=cfg, progress=False, max_steps=5)  # "killed" after step 5: steps 4-5 are lost
+    assert torch.load(killed / "checkpoint.pt", weights_only=False)["head_step"] == 3
+    train(tiny, killed, progress=False, resume=True)
+    a = torch.load(straight / "checkpoint.pt", weights_only=False)
+    b = torch.load(killed / "checkpoint.pt", weights_only=False)
+    assert (a["head_step"], a["torso_step"]) == (b["head_step"], b["torso_step"]) == (6, 3)
+    for key, value in a["model"].items():
+        assert torch.equal(value, b["model"][key]), key
+    with pytest.raises(RunError, match="already exists"):
+        train(tiny, straight, config=cfg, progress=False)
+
+
+def test_background_replacement_changes_only_the_background(tiny: Path, tiny_run: Path) -> None:
+    run, ds = load_run(tiny_run), load_dataset(tiny)
+    idx = list(ds.meta.test)
+    plate = ds.background.astype(np.float32) / 255.0
+    other = np.random.default_rng(0).random(plate.shape).astype(np.float32)
+    a = render_frames(run, ds.features[idx], ds.poses[idx], plate)
+    b = render_frames(run, ds.features[idx], ds.poses[idx], other)
+    transmittance = (1 - a.head_opacity) * (1 - a.torso_opacity)
+    expected = transmittance[..., None] * (other - plate) * 255.0
+    diff = b.frames.astype(np.float64) - a.frames.astype(np.float64)
+    assert np.abs(diff - expected).max() <= 1.0 + 1e-6  # uint8 rounding of each image
+    # The person (where the tiny run has learnt most opacity) changes in proportion to what shows
+    # through; empty pixels become the new background.
+    solid = transmittance <= np.quantile(transmittance, 0.02)
+    empty = transmittance > 1 - 1e-6
+    assert transmittance[solid].max() < 0.5 and empty.any()
+    assert np.abs(diff[solid]).max() <= 255.0 * transmittance[solid].max() + 1.0
+    assert np.abs(b.frames[empty] / 255.0 - np.broadcast_to(other, b.frames.shape)[empty]).max() <= 0.5 / 255 + 1e-6
+
+
+def test_zero_yaw_is_the_plain_render_and_yaw_turns_the_head(tiny: Path, tiny_run: Path) -> None:
+    run, ds = load_run(tiny_run), load_dataset(tiny)
+    idx = list(ds.meta.test)[:2]
+    plate = ds.background.astype(np.float32) / 255.0
+    plain = render_frames(run, ds.features[idx], ds.poses[idx], plate)
+    zero = render_frames(run, ds.features[idx], ds.poses[idx], plate, yaw=0.0, pitch=0.0, roll=0.0)
+    assert np.array_equal(plain.frames, zero.frames)
+    turned = render_frames(run, ds.features[idx], ds.poses[idx], plate, yaw=15.0)
+    assert not np.array_equal(plain.frames, turned.frames)
+
+
+def test_invalid_inputs_give_clear_errors(tiny: Path, tiny_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    silent = tmp_path / "silent.wav"
+    write_wav(silent, AudioTrack(np.zeros(16000, dtype=np.float32), 16000))
+    cases = [
+        (["render", str(tmp_path / "nope"), "--audio", str(tiny / "audio.wav"), "-o", str(tmp_path / "a.mp4")], "not an adnerf run"),
+        (["render", str(tiny_run), "--audio", str(silent), "-o", str(tmp_path / "b.mp4")], "no speech"),
+        (["evaluate", str(tiny_run), str(tmp_path / "nope")], "no such dataset folder"),
+        (["train", str(tmp_path / "nope"), "-o", str(tmp_path / "r")], "no such dataset folder"),
+        (["render", str(tiny_run), "--audio", str(tiny / "audio.wav"), "-o", str(tmp_path / "c.avi")], ".mp4"),
+    ]
+    bad_poses = tmp_path / "poses.npy"
+    np.save(bad_poses, np.tile(np.eye(4), (3, 1, 1)))
+    cases.append((["render", str(tiny_run), "--audio", str(tiny / "audio.wav"), "--poses", str(bad_poses), "-o", str(tmp_path / "d.mp4")], "has 3 poses"))
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, (argv, err)
+
+
+def test_pose_helpers(tmp_path: Path) -> None:
+    poses = np.arange(4)[:, None, None] * np.ones((4, 4, 4))
+    assert pingpong(poses, 9)[:, 0, 0].tolist() == [0, 1, 2, 3, 2, 1, 0, 1, 2]
+    with pytest.raises(RenderError, match="no speech"):
+        check_speech(AudioTrack(np.full(16000, 1e-4, dtype=np.float32), 16000), "x")
+    check_speech(AudioTrack(0.5 * np.sin(np.arange(16000) * 0.1).astype(np.float32), 16000), "x")
+    np.save(tmp_path / "bad.npy", np.zeros((2, 3)))
+    with pytest.raises(RenderError, match="shape"):
+        load_poses(tmp_path / "bad.npy", 2)
