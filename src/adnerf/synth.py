@@ -249,12 +249,13 @@ def pose_track(n: int, fps: float, seed: int = 0, max_yaw: float = 20.0) -> np.n
 
 def torso_pose(head_pose: np.ndarray) -> np.ndarray:
     """The torso's rigid transform (torso frame -> camera) as a fixed function of the head pose:
-    a third of the head's translation offset and a quarter of its yaw and roll."""
+    a third of the head's translation offset, a tenth of its yaw and a quarter of its roll
+    (shoulders turn far less than the head)."""
     R = head_pose[:3, :3]
     yaw = math.atan2(R[0, 2], R[2, 2])
     roll = math.atan2(R[1, 0], R[1, 1])
     out = np.eye(4)
-    out[:3, :3] = _euler(np.array(0.25 * yaw), np.array(0.0), np.array(0.25 * roll))
+    out[:3, :3] = _euler(np.array(0.1 * yaw), np.array(0.0), np.array(0.25 * roll))
     out[:3, 3] = np.array([0.0, 1.2, 6.35]) + (head_pose[:3, 3] - HEAD_CENTER) / 3.0
     return out
 

@@ -64,6 +64,8 @@ class TrainConfig:
         mouth_rays: Fraction of each stage-1 batch drawn around the mouth (the dataset's mouth point
             projected with the frame's pose, a square of side ``MOUTH_CROP`` units); the rest is
             drawn from the whole head box.
+        torso_person_rays: Fraction of each stage-2 batch drawn among the frame's torso pixels
+            (the rest uniformly in the torso box, which is mostly background).
         mask_weight: Weight of the opacity loss against the parsing (stage 1: head pixels opaque,
             others clear; stage 2: torso pixels). Without it a static plate lets a layer stay
             half transparent and mix in the plate's colour, which a new background exposes.
@@ -74,13 +76,14 @@ class TrainConfig:
     """
 
     head_iters: int = 3000
-    torso_iters: int = 1000
+    torso_iters: int = 1500
     rays: int = 1024
     lr: float = 1e-2
     lr_audio: float = 2e-3
     lr_final: float = 0.1
     att_start: float = 0.6
     mouth_rays: float = 0.25
+    torso_person_rays: float = 0.5
     mask_weight: float = 0.1
     checkpoint_every: int = 250
     log_every: int = 25
@@ -99,8 +102,8 @@ class TrainConfig:
             raise ValueError("att_start must lie in [0, 1]")
         if self.mask_weight < 0:
             raise ValueError("mask_weight must be >= 0")
-        if not 0 <= self.mouth_rays <= 1:
-            raise ValueError("mouth_rays must lie in [0, 1]")
+        if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1):
+            raise ValueError("mouth_rays and torso_person_rays must lie in [0, 1]")
 
     @staticmethod
     def from_dict(d: dict) -> "TrainConfig":
@@ -375,7 +378,9 @@ class _Trainer:
             sched.set(step)
             frame = self.pick_frame()
             pose = self.ds.head_pose(frame, device=self.device)
-            pix = self.pick_rays(candidates)
+            person = torch.nonzero(self.is_torso[frame])[:, 0]
+            n_person = int(round(tcfg.torso_person_rays * tcfg.rays)) if person.numel() else 0
+            pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
             target = self.frames[frame, pix]
             out = render_torso(self.model, self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.generator)
             return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso)
