@@ -19,6 +19,7 @@ from kornia.metrics import psnr, ssim
 
 from .data import MOUTH_CROP, TalkingHeadDataset
 from .render_video import RenderedClip, render_frames
+from .train import Run
 
 __all__ = ["mouth_darkness", "evaluate_clip", "image_metrics", "mouth_boxes"]
 
@@ -99,7 +100,7 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip)
     return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in out.items()}
 
 
-def evaluate_run(run, ds: TalkingHeadDataset, split: str = "test") -> tuple[dict, RenderedClip]:
+def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test") -> tuple[dict, RenderedClip]:
     """Render a split with its own poses and audio windows and measure it (see the module docs)."""
     if split not in ("train", "test"):
         raise ValueError(f"split must be train or test; got {split!r}")

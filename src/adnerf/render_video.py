@@ -10,6 +10,7 @@ the training dataset. Yaw, pitch and roll (degrees) rotate every pose about the 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -18,6 +19,7 @@ import cv2
 import numpy as np
 import torch
 
+from .data import SceneMeta
 from .features import FeatureSpec, speech_windows
 from .io import AudioTrack, MediaError, read_audio, write_video
 from .pose import HeadPose
@@ -130,8 +132,6 @@ def render_frames(
         roll: About the viewing axis, degrees.
         progress: Called as ``progress(done, total)``.
     """
-    import time
-
     model = run.model
     dev = next(model.parameters()).device
     meta = run.meta
@@ -139,8 +139,6 @@ def render_frames(
         raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
     if plate.shape != (meta["height"], meta["width"], 3):
         raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
-    from .data import SceneMeta
-
     camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
     plate_t = torch.as_tensor(plate, dtype=torch.float32, device=dev)
     t0 = time.perf_counter()

@@ -29,7 +29,7 @@ from .rays import RayBundle
 from .renderer import RenderOutput, VolumeRenderer
 from .samplers import AABBBounds, Bounds, PosedAABBBounds
 
-__all__ = ["FrameRender", "ModelConfig", "TalkingHead", "model_config", "render_frame", "render_head", "render_torso"]
+__all__ = ["FrameRender", "ModelConfig", "TalkingHead", "model_config", "layer_bounds", "render_frame", "render_part"]
 
 
 @dataclass
@@ -156,12 +156,14 @@ class TalkingHead(nn.Module):
         x = (windows.to(self.feature_mean) - self.feature_mean) / self.feature_std
         return self.audio_net(x)
 
+    def neighbours(self, index: int, n: int, device: torch.device | str | None = None) -> Tensor:
+        """The ``att_len`` frame indices around ``index`` that AudioAttNet filters, clamped to ``[0, n)``."""
+        half = self.config.att_len // 2
+        return torch.arange(index - half, index - half + self.config.att_len, device=device).clamp(0, n - 1)
+
     def smoothed_code(self, codes: Tensor, index: int) -> Tensor:
         """AudioAttNet over the ``att_len`` codes around frame ``index`` (clamped at the ends)."""
-        n = codes.shape[0]
-        half = self.config.att_len // 2
-        idx = torch.arange(index - half, index - half + self.config.att_len, device=codes.device).clamp(0, n - 1)
-        return self.att_net(codes[idx])
+        return self.att_net(codes[self.neighbours(index, codes.shape[0], codes.device)])
 
     def frame_code(self, windows: Tensor, index: int, smooth: bool) -> Tensor:
         """The audio code ``(audio_dim,)`` of frame ``index`` from all windows ``(N, 16, D)``.
@@ -170,10 +172,7 @@ class TalkingHead(nn.Module):
         """
         if not smooth:
             return self.audio_codes(windows[index : index + 1])[0]
-        n = windows.shape[0]
-        half = self.config.att_len // 2
-        idx = torch.arange(index - half, index - half + self.config.att_len, device=windows.device).clamp(0, n - 1)
-        return self.att_net(self.audio_codes(windows[idx]))
+        return self.att_net(self.audio_codes(windows[self.neighbours(index, windows.shape[0], windows.device)]))
 
     def all_codes(self, windows: Tensor, smooth: bool, batch: int = 512) -> Tensor:
         """Codes ``(N, audio_dim)`` of every frame (smoothed with AudioAttNet when ``smooth``)."""
@@ -199,41 +198,43 @@ def torso_bounds(config: ModelConfig, like: Tensor) -> AABBBounds:
     return AABBBounds(lo, hi)
 
 
-def _render_layer(
-    renderer: VolumeRenderer, coarse: nn.Module, fine: nn.Module, rays: RayBundle, pose: HeadPose, code: Tensor,
-    background: Tensor | None, jitter: bool, generator: torch.Generator | None,
+def layer_bounds(model: TalkingHead, part: Literal["head", "torso"], pose: HeadPose) -> Bounds:
+    """The sampling bounds of a layer: the head box moved by ``pose``, or the torso box."""
+    if part == "head":
+        return head_bounds(model.config, pose)
+    if part == "torso":
+        return torso_bounds(model.config, pose.t)
+    raise ValueError(f"part must be head or torso; got {part!r}")
+
+
+def render_part(
+    model: TalkingHead,
+    part: Literal["head", "torso"],
+    rays: RayBundle,
+    pose: HeadPose,
+    code: Tensor,
+    *,
+    background: Tensor | None = None,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
 ) -> RenderOutput:
+    """Render the head or the torso layer along rays ``(R,)`` for one frame.
+
+    Args:
+        model: The model.
+        part: ``"head"`` (canonical space, warped by ``pose``) or ``"torso"`` (camera space,
+            ``pose`` as input).
+        rays: Camera-space rays ``(R,)``.
+        pose: The frame's head pose.
+        code: The frame's audio code ``(audio_dim,)``.
+        background: Colour behind the layer ``(R, 3)``; ``None`` gives premultiplied colour.
+        jitter: Random samples (training).
+        generator: Random generator for the samples.
+    """
+    coarse, fine = (model.head, model.head_fine) if part == "head" else (model.torso, model.torso_fine)
+    samples = model.config.head_samples if part == "head" else model.config.torso_samples
+    renderer = VolumeRenderer(layer_bounds(model, part, pose), *samples)
     return renderer.render_rays(rays, coarse, fine, background=background, jitter=jitter, generator=generator, pose=pose, audio=code)
-
-
-def render_head(
-    model: TalkingHead,
-    rays: RayBundle,
-    pose: HeadPose,
-    code: Tensor,
-    *,
-    background: Tensor | None = None,
-    jitter: bool = False,
-    generator: torch.Generator | None = None,
-) -> RenderOutput:
-    """Render the head along rays ``(R,)`` for one frame's pose and audio code ``(audio_dim,)``."""
-    renderer = VolumeRenderer(head_bounds(model.config, pose), *model.config.head_samples)
-    return _render_layer(renderer, model.head, model.head_fine, rays, pose, code, background, jitter, generator)
-
-
-def render_torso(
-    model: TalkingHead,
-    rays: RayBundle,
-    pose: HeadPose,
-    code: Tensor,
-    *,
-    background: Tensor | None = None,
-    jitter: bool = False,
-    generator: torch.Generator | None = None,
-) -> RenderOutput:
-    """Render the torso along rays ``(R,)`` for one frame's head pose and audio code (same arguments)."""
-    renderer = VolumeRenderer(torso_bounds(model.config, rays.origins), *model.config.torso_samples)
-    return _render_layer(renderer, model.torso, model.torso_fine, rays, pose, code, background, jitter, generator)
 
 
 @dataclass
@@ -297,7 +298,7 @@ def render_frame(
     head_opacity = torch.zeros(n, device=dev)
     head_depth = torch.zeros(n, device=dev, dtype=torch.float64)
 
-    hit, comp = _render_hits(lambda r: render_head(model, r, pose, code), rays, head_bounds(model.config, pose), chunk)
+    hit, comp = _render_hits(lambda r: render_part(model, "head", r, pose, code), rays, layer_bounds(model, "head", pose), chunk)
     if comp is not None:
         head_rgb[hit] = comp.rgb.to(head_rgb)
         head_opacity[hit] = comp.opacity.to(head_opacity)
@@ -306,7 +307,7 @@ def render_frame(
     torso_rgb = torch.zeros(n, 3, device=dev)
     torso_opacity = torch.zeros(n, device=dev)
     if torso:
-        hit, comp = _render_hits(lambda r: render_torso(model, r, pose, code), rays, torso_bounds(model.config, rays.origins), chunk)
+        hit, comp = _render_hits(lambda r: render_part(model, "torso", r, pose, code), rays, layer_bounds(model, "torso", pose), chunk)
         if comp is not None:
             torso_rgb[hit] = comp.rgb.to(torso_rgb)
             torso_opacity[hit] = comp.opacity.to(torso_opacity)

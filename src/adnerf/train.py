@@ -37,7 +37,7 @@ from .atomic import atomic_path
 from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
 from .fields import check_config_keys
 from .renderer import RenderOutput
-from .talking_head import ModelConfig, TalkingHead, head_bounds, model_config, render_frame, render_head, render_torso, torso_bounds
+from .talking_head import ModelConfig, TalkingHead, layer_bounds, model_config, render_frame, render_part, torso_bounds
 
 __all__ = ["RunError", "TrainConfig", "load_run", "train"]
 
@@ -323,21 +323,20 @@ class _Trainer:
     def head_stage(self, max_steps: int | None) -> None:
         tcfg = self.tcfg
         sched = _Schedule(self.opt_head, [tcfg.lr, tcfg.lr_audio], tcfg.head_iters, tcfg.lr_final)
-        box = head_bounds
         self.model.train()
 
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
             frame = self.pick_frame()
             pose = self.ds.head_pose(frame, device=self.device)
-            near, far = box(self.model.config, pose)(self.rays)
+            near, far = layer_bounds(self.model, "head", pose)(self.rays)
             candidates = torch.nonzero(far > near)[:, 0]
             mouth = self.mouth_pixels(pose)
             n_mouth = int(round(tcfg.mouth_rays * tcfg.rays)) if mouth.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
             target = torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
             code = self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters)
-            out = render_head(self.model, self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.generator)
+            out = render_part(self.model, "head", self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.generator)
             return _optimise(out, target, self.is_head[frame, pix], tcfg.mask_weight, self.opt_head)
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
@@ -382,7 +381,7 @@ class _Trainer:
             n_person = int(round(tcfg.torso_person_rays * tcfg.rays)) if person.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
             target = self.frames[frame, pix]
-            out = render_torso(self.model, self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.generator)
+            out = render_part(self.model, "torso", self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.generator)
             return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso)
 
         self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
