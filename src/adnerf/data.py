@@ -112,6 +112,13 @@ class SceneMeta:
         K = intrinsics_matrix(*self.intrinsics, dtype=dtype).to(device)
         return Camera(K, self.height, self.width)
 
+    def mouth_in_image(self, pose: HeadPose) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where the canonical mouth point appears under head pose(s) ``pose`` (batch ``(...)``):
+        pixel coordinates ``(..., 2)`` and camera depth ``z`` ``(...)``."""
+        mouth = torch.tensor(self.mouth, dtype=pose.R.dtype, device=pose.R.device)
+        p = pose.from_canonical(mouth.expand(*pose.t.shape[:-1], 3))
+        return self.camera(pose.R.dtype, pose.R.device).project(p), p[..., 2]
+
     def box(self, name: str, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``head_aabb`` or ``torso_aabb`` as two ``(3,)`` tensors."""
         lo, hi = getattr(self, name)

@@ -31,12 +31,9 @@ def mouth_boxes(ds: TalkingHeadDataset, frames: list[int], crop: float = MOUTH_C
     and boxes are shifted to lie inside the image.
     """
     meta = ds.meta
-    cam = meta.camera()
-    pose = ds.head_pose(frames)
-    mouth = torch.tensor(meta.mouth, dtype=torch.float64)
-    p = pose.from_canonical(mouth.expand(len(frames), 3))
-    uv = cam.project(p).numpy()
-    side = int(round(crop * meta.intrinsics[0] / float(p[:, 2].mean())))
+    uv_t, depth = meta.mouth_in_image(ds.head_pose(frames))
+    uv = uv_t.numpy()
+    side = int(round(crop * meta.intrinsics[0] / float(depth.mean())))
     side = max(8, min(side, meta.width, meta.height))
     x0 = np.clip(np.round(uv[:, 0] - side / 2).astype(int), 0, meta.width - side)
     y0 = np.clip(np.round(uv[:, 1] - side / 2).astype(int), 0, meta.height - side)

@@ -161,14 +161,14 @@ def render_frames(
     return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0)
 
 
-def audio_frames(audio: AudioTrack, fps: float, feature_kind: str, where: str) -> tuple[AudioTrack, np.ndarray]:
-    """The audio resampled to 16 kHz and its feature windows, one per frame of ``fps``."""
+def audio_frames(audio: AudioTrack, fps: float, feature_kind: str, where: str) -> np.ndarray:
+    """Feature windows ``(N, 16, D)`` of ``audio``, one per frame of ``fps`` (after checking it holds speech)."""
     check_speech(audio, where)
     n = int(math.floor(audio.duration * fps))
     if n < 1:
         raise RenderError(f"{where}: the audio is shorter than one frame at {fps} fps")
     times = audio.start + np.arange(n) / fps
-    return audio, speech_windows(audio, times, FeatureSpec(kind=feature_kind))
+    return speech_windows(audio, times, FeatureSpec(kind=feature_kind))
 
 
 def render_audio_video(
@@ -198,7 +198,7 @@ def render_audio_video(
     except MediaError as exc:
         raise RenderError(str(exc)) from exc
     meta = run.meta
-    audio, windows = audio_frames(audio, meta["fps"], meta["feature_kind"], str(audio_path))
+    windows = audio_frames(audio, meta["fps"], meta["feature_kind"], str(audio_path))
     n = len(windows)
     if poses_file is not None:
         poses = load_poses(poses_file, n)

@@ -277,6 +277,11 @@ def _sample(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out.reshape(-1, 3)
 
 
+def _shrink(image: np.ndarray, scale: float) -> np.ndarray:
+    """``image`` resized by ``scale`` with area averaging when ``scale < 1``; unchanged otherwise."""
+    return cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else image
+
+
 class HeadModel:
     """The head mesh, its jaw and its colours, in canonical space.
 
@@ -299,10 +304,10 @@ class HeadModel:
         head_px = FOCAL_PER_PIXEL * size / HEAD_CENTER[2]  # screen pixels per unit at the head
         face = photo[10:205, 120:330]  # rows span the head's 2 units of height
         scale = min(1.0, 2.0 * head_px * 1.9 / face.shape[0])  # about 2 texels per screen pixel
-        self.face = cv2.resize(face, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else face
+        self.face = _shrink(face, scale)
         self.face_scale = scale
         hair = photo[18:70, 175:285]
-        self.hair = cv2.resize(hair, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else hair
+        self.hair = _shrink(hair, scale)
 
     def vertices(self, opening: float) -> np.ndarray:
         """Canonical vertex positions ``(V, 3)`` with the jaw opened by ``opening`` in [0, 1]."""
@@ -351,7 +356,7 @@ class TorsoModel:
         photo = _photo()
         suit = photo[300:500, 40:340]
         scale = min(1.0, FOCAL_PER_PIXEL * size / 6.35 * 3.4 * 1.5 / suit.shape[1])
-        self.suit = cv2.resize(suit, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else suit
+        self.suit = _shrink(suit, scale)
         self.skin = photo[150:175, 200:250].reshape(-1, 3).mean(0)
 
     def colors(self, points: np.ndarray, normals: np.ndarray, is_neck: np.ndarray) -> np.ndarray:

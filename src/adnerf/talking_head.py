@@ -14,7 +14,7 @@ miss a box get that layer's opacity 0 without evaluating anything.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Callable, Literal
+from typing import Literal
 
 import torch
 from torch import Tensor, nn
@@ -207,6 +207,13 @@ def layer_bounds(model: TalkingHead, part: Literal["head", "torso"], pose: HeadP
     raise ValueError(f"part must be head or torso; got {part!r}")
 
 
+def _layer_renderer(model: TalkingHead, part: Literal["head", "torso"], pose: HeadPose) -> tuple[VolumeRenderer, nn.Module, nn.Module]:
+    """The renderer (bounds and sample counts) and the coarse and fine fields of a layer."""
+    if part == "head":
+        return VolumeRenderer(layer_bounds(model, part, pose), *model.config.head_samples), model.head, model.head_fine
+    return VolumeRenderer(layer_bounds(model, part, pose), *model.config.torso_samples), model.torso, model.torso_fine
+
+
 def render_part(
     model: TalkingHead,
     part: Literal["head", "torso"],
@@ -231,9 +238,7 @@ def render_part(
         jitter: Random samples (training).
         generator: Random generator for the samples.
     """
-    coarse, fine = (model.head, model.head_fine) if part == "head" else (model.torso, model.torso_fine)
-    samples = model.config.head_samples if part == "head" else model.config.torso_samples
-    renderer = VolumeRenderer(layer_bounds(model, part, pose), *samples)
+    renderer, coarse, fine = _layer_renderer(model, part, pose)
     return renderer.render_rays(rays, coarse, fine, background=background, jitter=jitter, generator=generator, pose=pose, audio=code)
 
 
@@ -256,15 +261,14 @@ class FrameRender:
     head_depth: Tensor
 
 
-def _render_hits(render: Callable[[RayBundle], RenderOutput], rays: RayBundle, bounds: Bounds, chunk: int) -> tuple[Tensor, Composite | None]:
-    """Render only the rays ``(R,)`` whose bounds are non-empty; returns their mask and composite."""
-    near, far = bounds(rays)
+def _render_hits(model: TalkingHead, part: Literal["head", "torso"], rays: RayBundle, pose: HeadPose, code: Tensor, chunk: int) -> tuple[Tensor, Composite | None]:
+    """Render a layer along only the rays ``(R,)`` that cross its box; returns their mask and composite."""
+    renderer, coarse, fine = _layer_renderer(model, part, pose)
+    near, far = renderer.coarse_sampler.bounds(rays)
     hit = far > near
     if not bool(hit.any()):
         return hit, None
-    sub = rays[hit]
-    parts = [render(sub[i : i + chunk]).final for i in range(0, sub.shape[0], chunk)]
-    return hit, Composite(*(torch.cat([getattr(p, f) for p in parts]) for f in ("rgb", "opacity", "depth", "weights", "residual_transmittance")))
+    return hit, renderer.render_chunked(rays[hit], coarse, fine, chunk=chunk, pose=pose, audio=code).final
 
 
 @torch.no_grad()
@@ -298,7 +302,7 @@ def render_frame(
     head_opacity = torch.zeros(n, device=dev)
     head_depth = torch.zeros(n, device=dev, dtype=torch.float64)
 
-    hit, comp = _render_hits(lambda r: render_part(model, "head", r, pose, code), rays, layer_bounds(model, "head", pose), chunk)
+    hit, comp = _render_hits(model, "head", rays, pose, code, chunk)
     if comp is not None:
         head_rgb[hit] = comp.rgb.to(head_rgb)
         head_opacity[hit] = comp.opacity.to(head_opacity)
@@ -307,7 +311,7 @@ def render_frame(
     torso_rgb = torch.zeros(n, 3, device=dev)
     torso_opacity = torch.zeros(n, device=dev)
     if torso:
-        hit, comp = _render_hits(lambda r: render_part(model, "torso", r, pose, code), rays, layer_bounds(model, "torso", pose), chunk)
+        hit, comp = _render_hits(model, "torso", rays, pose, code, chunk)
         if comp is not None:
             torso_rgb[hit] = comp.rgb.to(torso_rgb)
             torso_opacity[hit] = comp.opacity.to(torso_opacity)

@@ -276,10 +276,8 @@ class _Trainer:
 
     def mouth_pixels(self, pose) -> torch.Tensor:
         """Flat indices of the pixels in the square of side ``MOUTH_CROP`` units around the mouth."""
-        mouth = torch.tensor(self.ds.meta.mouth, dtype=pose.R.dtype, device=pose.R.device)
-        p = pose.from_canonical(mouth)
-        uv = self.camera.project(p)
-        half = 0.5 * MOUTH_CROP * self.ds.meta.intrinsics[0] / float(p[2])
+        uv, depth = self.ds.meta.mouth_in_image(pose)
+        half = 0.5 * MOUTH_CROP * self.ds.meta.intrinsics[0] / float(depth)
         W = self.camera.width
         cols = self.pixel_index % W + 0.5
         rows = self.pixel_index // W + 0.5
