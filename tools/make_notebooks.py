@@ -66,6 +66,8 @@ def components() -> nbformat.NotebookNode:
 
 
 def _notebook(cells: list) -> nbformat.NotebookNode:
+    for i, cell in enumerate(cells):
+        cell["id"] = f"cell-{i:02d}"  # stable ids: regenerating a notebook changes only what changed
     nb = nbformat.v4.new_notebook(cells=cells)
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     return nb
@@ -117,8 +119,59 @@ def quickstart() -> nbformat.NotebookNode:
     return _notebook(cells)
 
 
+def error_vs_runtime() -> nbformat.NotebookNode:
+    md = nbformat.v4.new_markdown_cell
+    code = nbformat.v4.new_code_cell
+    cells = [
+        md("# Error against run time\n\n"
+           "Two trade-offs, measured: (1) how fast each field configuration learns the head of the synthetic scene "
+           "(`adnerf bench fields`: held-out PSNR after equal budgets of training time), and (2) how the volume-rendering "
+           "quadrature error falls with samples per ray, stratified against importance sampling (`adnerf bench render`, "
+           "an analytic sphere whose opacity and depth are known in closed form).\n\n"
+           "Part 1 draws the saved result of the README's bench run (`docs/bench/fields_cpu.jsonl`). To measure your own "
+           "machine: `adnerf bench fields --json --plot fields.png > fields.jsonl` (about 25 minutes on 2 CPU cores)."),
+        code("import os\nfrom pathlib import Path\n\nimport matplotlib.pyplot as plt\n\nimport adnerf\n"
+             "from adnerf.bench import bench_render\nfrom adnerf.bench_fields import bench_fields, format_fields_table, load_rows, plot_fields\n\n"
+             "small = os.environ.get('ADNERF_NOTEBOOK_SMALL') == '1'\n"
+             "saved = Path(adnerf.__file__).resolve().parents[2] / 'docs' / 'bench' / 'fields_cpu.jsonl'\n"
+             "print(saved, 'exists' if saved.exists() else 'not found (installed without the source tree)')"),
+        md("## 1. Held-out PSNR against training time\n"
+           "Every configuration trains stage 1 (the audio-conditioned head) for the same wall time; the clock stops while "
+           "the PSNR is measured on a fixed set of held-out rays. Without the saved file, a short live run stands in."),
+        code("if saved.exists():\n    rows = load_rows(saved)\nelse:\n"
+             "    rows = bench_fields(configs=['fast', 'fast-no-skip'], budget=3.0, checkpoints=(1.0, 2.0), size=32, synth_seconds=1.6, isolate=False, progress=False)\n"
+             "print(format_fields_table(rows))\nfig, ax = plt.subplots(figsize=(7, 4.5))\nplot_fields(rows, ax=ax)\nplt.show()"),
+        code("paper = next((r for r in rows if r['config'] == 'paper'), None)\n"
+             "for r in rows:\n"
+             "    if paper is None or r['config'] == 'paper':\n"
+             "        continue\n"
+             "    reach = r.get('seconds_to_reference_psnr')\n"
+             "    when = 'never' if reach is None else f\"within {reach:g} s, {r['speedup_vs_reference']:g}x sooner\"\n"
+             "    print(f\"{r['config']:<17} reaches the paper's {paper['budget_s']:g}-second PSNR ({paper['psnr_final']:.2f} dB): {when}\")"),
+        md("## 2. Quadrature error against samples per ray\n"
+           "Stratified sampling against NeRF's coarse + importance sampling at the same total number of samples."),
+        code("samples = (8, 16, 32, 64) if small else (8, 16, 32, 64, 128, 256)\n"
+             "quad = bench_render(samples, size=48 if small else 128, repeats=1 if small else 3)\n"
+             "fig, ax = plt.subplots(1, 2, figsize=(11, 4))\n"
+             "for method, marker in (('stratified', 'o'), ('importance', 's')):\n"
+             "    r = [q for q in quad if q.method == method]\n"
+             "    ax[0].loglog([q.samples_per_ray for q in r], [q.opacity_rel_err for q in r], marker=marker, label=method)\n"
+             "    ax[1].loglog([q.samples_per_ray for q in r], [q.depth_rel_err for q in r], marker=marker, label=method)\n"
+             "ax[0].set(xlabel='samples per ray', ylabel='relative opacity error', title='opacity')\n"
+             "ax[1].set(xlabel='samples per ray', ylabel='relative depth error', title='depth')\n"
+             "for a in ax:\n    a.grid(True, which='both', alpha=0.3); a.legend()\nplt.tight_layout(); plt.show()"),
+        code("by = {(q.samples_per_ray, q.method): q for q in quad}\n"
+             "for n in samples:\n"
+             "    s, i = by[(n, 'stratified')], by[(n, 'importance')]\n"
+             "    print(f'{n:>4} samples: depth error stratified {s.depth_rel_err:.2e}, importance {i.depth_rel_err:.2e}; {s.seconds_per_mrays:.2f} vs {i.seconds_per_mrays:.2f} s per million rays')\n"
+             "errs = [by[(n, 'importance')].depth_rel_err for n in samples]\n"
+             "assert errs[-1] < errs[0], 'the error must fall with samples per ray'"),
+    ]
+    return _notebook(cells)
+
+
 def main() -> None:
-    for name, build in (("01_components.ipynb", components), ("02_quickstart.ipynb", quickstart)):
+    for name, build in (("01_components.ipynb", components), ("02_quickstart.ipynb", quickstart), ("03_error_vs_runtime.ipynb", error_vs_runtime)):
         out = ROOT / "notebooks" / name
         nbformat.write(build(), out)
         print(f"wrote {out}")

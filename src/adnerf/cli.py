@@ -54,6 +54,41 @@ def _cmd_bench_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _positive_float_list(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from exc
+    if not values or any(not v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
+    return values
+
+
+def _cmd_bench_fields(args: argparse.Namespace) -> int:
+    from .bench_fields import bench_fields, format_fields_table, plot_fields
+
+    if args.budget <= 0:
+        raise CliError(f"--budget must be > 0 seconds; got {args.budget}")
+    try:
+        rows = bench_fields(
+            args.dataset,
+            configs=args.configs.split(",") if args.configs else None,
+            budget=args.budget,
+            checkpoints=args.checkpoints,
+            size=args.size,
+            device=_device(args.device),
+            seed=args.seed,
+            progress=not args.json,
+        )
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    _emit(rows, format_fields_table(rows), args.json)
+    if args.plot:
+        plot_fields(rows, args.plot)
+        print(f"plot: {args.plot}", file=sys.stderr)
+    return 0
+
+
 def _cmd_bench_features(args: argparse.Namespace) -> int:
     from .bench import bench_features
     from .io import MediaError
@@ -233,6 +268,17 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--dtype", default="float32", choices=("float32", "float64"))
     render.add_argument("--sigma", type=float, default=10.0, help="density of the analytic sphere (default 10: surface-like)")
     render.set_defaults(func=_cmd_bench_render)
+    fields = bench_sub.add_parser("fields", help="held-out PSNR against training time per field configuration (paper MLP, fast grids, skipping, fine pass)")
+    fields.add_argument("--dataset", default=None, help="dataset folder (default: synthesise the built-in scene at --size)")
+    fields.add_argument("--configs", default=None, help="comma-separated: paper, fast, fast-no-skip, fast-coarse-only (default: all)")
+    fields.add_argument("--budget", type=float, default=300.0, help="seconds of training per configuration (default 300)")
+    fields.add_argument("--checkpoints", type=_positive_float_list, default=(5, 10, 20, 30, 60, 120, 300), help="training times (s) to measure PSNR at")
+    fields.add_argument("--size", type=int, default=128, help="frame size of the synthesised scene (default 128)")
+    fields.add_argument("--device", default="cpu", help="cpu or cuda")
+    fields.add_argument("--seed", type=int, default=0)
+    fields.add_argument("--plot", default=None, help="write a PNG of PSNR against training time")
+    fields.add_argument("--json", action="store_true", help="JSON lines on stdout, table on stderr")
+    fields.set_defaults(func=_cmd_bench_fields)
     fbench = bench_sub.add_parser("features", help="speech feature extraction speed (seconds of audio per second)")
     fbench.add_argument("--media", default=None, help="audio/video file to use (default: 60 s of synthetic voiced audio)")
     fbench.add_argument("--seconds", type=float, default=60.0, help="length of the synthetic audio")

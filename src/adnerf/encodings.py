@@ -114,11 +114,15 @@ class TriPlaneEncoding(Encoding):
         # Plane coordinates (grid_sample wants (x, y) = (width, height) order): xy, xz, yz.
         coords = torch.stack([p[:, [0, 1]], p[:, [0, 2]], p[:, [1, 2]]], dim=0)  # (3, N, 2)
         grid = coords[:, None]  # (3, 1, N, 2)
-        feats = []
-        for planes in self.planes:
-            sampled = F.grid_sample(planes.to(x.dtype), grid, mode="bilinear", padding_mode="border", align_corners=True)
-            feats.append(sampled[:, :, 0].permute(2, 0, 1).reshape(-1, 3 * self.channels))  # (N, 3C)
-        return torch.cat(feats, dim=-1).reshape(*batch, self.out_dim)
+        n = grid.shape[2]
+        # grid_sample gives (3, C, 1, N) per level: feature-major, so the levels stack along dim 0
+        # without a permute, and the (F, N) result is handed on transposed, as a view (the MLP's
+        # matrix product reads transposed operands directly). Feature order: level, plane, channel.
+        feats = [
+            F.grid_sample(planes.to(x.dtype), grid, mode="bilinear", padding_mode="border", align_corners=True).reshape(3 * self.channels, n)
+            for planes in self.planes
+        ]
+        return torch.cat(feats, dim=0).t().reshape(*batch, self.out_dim)
 
     def total_variation(self) -> Tensor:
         """Mean squared difference of neighbouring plane features (a smoothness regulariser)."""

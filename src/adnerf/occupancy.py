@@ -40,6 +40,11 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("occupied", torch.ones((resolution,) * 3, dtype=torch.bool))
 
     @property
+    def estimated(self) -> bool:
+        """Whether :meth:`update` has run (before it every cell is occupied, density ``inf``)."""
+        return bool(torch.isfinite(self.density).all())
+
+    @property
     def cell_size(self) -> Tensor:
         """Cell edge lengths ``(3,)``."""
         return (self.aabb_max - self.aabb_min) / self.resolution

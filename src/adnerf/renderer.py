@@ -63,13 +63,15 @@ def evaluate_field(field: Field, samples: RaySamples, occupancy: Occupancy | Non
 
     Returns:
         ``(rgb (..., S, 3), density (..., S), n_evaluated)``. With ``occupancy``, samples in empty
-        space and zero-length samples are not evaluated and get density 0 and colour 0.
+        space and zero-length samples are not evaluated and get density 0 and colour 0. A field
+        run under mixed-precision autocast returns half-precision values; they are returned in
+        float32, so transmittance and weights are always accumulated in at least float32.
     """
     positions = samples.positions()
     directions = samples.directions()
     if occupancy is None:
         out = field(positions, directions, **conditioning)
-        return out.rgb, out.density, positions.shape[:-1].numel()
+        return _full(out.rgb), _full(out.density), positions.shape[:-1].numel()
     mask = occupancy(positions) & (samples.deltas > 0)
     n = int(mask.sum())
     shape = samples.t_starts.shape
@@ -81,9 +83,15 @@ def evaluate_field(field: Field, samples: RaySamples, occupancy: Occupancy | Non
             0,
         )
     out = field(positions[mask], directions[mask], **conditioning)
-    rgb = torch.zeros(*shape, 3, dtype=out.rgb.dtype, device=out.rgb.device).index_put((mask,), out.rgb)
-    density = torch.zeros(shape, dtype=out.density.dtype, device=out.density.device).index_put((mask,), out.density)
+    out_rgb, out_density = _full(out.rgb), _full(out.density)
+    rgb = torch.zeros(*shape, 3, dtype=out_rgb.dtype, device=out_rgb.device).index_put((mask,), out_rgb)
+    density = torch.zeros(shape, dtype=out_density.dtype, device=out_density.device).index_put((mask,), out_density)
     return rgb, density, n
+
+
+def _full(x: Tensor) -> Tensor:
+    """Half-precision field outputs (under autocast) go to the compositor in float32."""
+    return x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
 
 
 def _field_dtype(field: Field, default: torch.dtype) -> torch.dtype:

@@ -37,7 +37,7 @@ from .atomic import atomic_path
 from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
 from .fields import check_config_keys
 from .renderer import RenderOutput
-from .talking_head import ModelConfig, TalkingHead, layer_bounds, model_config, render_frame, render_part, torso_bounds
+from .talking_head import ModelConfig, TalkingHead, layer_bounds, model_config, render_frame, render_part, torso_bounds, update_occupancy
 
 __all__ = ["RunError", "TrainConfig", "load_run", "train"]
 
@@ -69,6 +69,10 @@ class TrainConfig:
         mask_weight: Weight of the opacity loss against the parsing (stage 1: head pixels opaque,
             others clear; stage 2: torso pixels). Without it a static plate lets a layer stay
             half transparent and mix in the plate's colour, which a new background exposes.
+        occupancy_start: Fraction of each stage after which the layer's occupancy grid is
+            estimated and empty space skipped (the field needs a rough shape first).
+        occupancy_every: Iterations between updates of the occupancy grid (each update
+            evaluates both fields once per cell under the current frame's condition).
         checkpoint_every: Iterations between checkpoints.
         log_every: Iterations between log lines.
         seed: Seed of the initialisation and of the ray sampling.
@@ -85,6 +89,8 @@ class TrainConfig:
     mouth_rays: float = 0.25
     torso_person_rays: float = 0.5
     mask_weight: float = 0.1
+    occupancy_start: float = 0.1
+    occupancy_every: int = 16
     checkpoint_every: int = 250
     log_every: int = 25
     seed: int = 0
@@ -94,12 +100,12 @@ class TrainConfig:
         """Raise ``ValueError`` on impossible settings."""
         if self.head_iters < 0 or self.torso_iters < 0:
             raise ValueError("iteration counts must be >= 0")
-        if self.rays < 1 or self.checkpoint_every < 1 or self.log_every < 1:
-            raise ValueError("rays, checkpoint_every and log_every must be >= 1")
+        if self.rays < 1 or self.checkpoint_every < 1 or self.log_every < 1 or self.occupancy_every < 1:
+            raise ValueError("rays, checkpoint_every, log_every and occupancy_every must be >= 1")
         if not (self.lr > 0 and self.lr_audio > 0 and 0 < self.lr_final <= 1):
             raise ValueError("learning rates must be positive and lr_final in (0, 1]")
-        if not 0 <= self.att_start <= 1:
-            raise ValueError("att_start must lie in [0, 1]")
+        if not (0 <= self.att_start <= 1 and 0 <= self.occupancy_start <= 1):
+            raise ValueError("att_start and occupancy_start must lie in [0, 1]")
         if self.mask_weight < 0:
             raise ValueError("mask_weight must be >= 0")
         if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1):
@@ -172,9 +178,17 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
         raise RunError(f"{root}: no checkpoint.pt yet (training has not written one)")
     ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
     model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
-    model.load_state_dict(ckpt["model"])
+    _load_model_state(model, ckpt["model"], ckpt_path)
     model.eval()
     return Run(root, Path(doc["dataset"]), model, TrainConfig.from_dict(doc["train"]), ckpt["head_step"], ckpt["torso_step"], doc["meta"])
+
+
+def _load_model_state(model: TalkingHead, state: dict, path: Path) -> None:
+    """Load weights; a checkpoint from before occupancy grids existed leaves them unestimated."""
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.split(".")[0].endswith("_occupancy")]
+    if missing or unexpected:
+        raise RunError(f"{path}: weights do not match the run's model (missing {missing[:3]}, unexpected {unexpected[:3]})")
 
 
 class _Schedule:
@@ -239,6 +253,7 @@ class _Trainer:
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.head_step = self.torso_step = 0
         self.elapsed = {"head": 0.0, "torso": 0.0}
+        self.samples = 0  # field evaluations (after empty-space skipping) since construction
 
     # ---- checkpoints
     def save(self) -> None:
@@ -255,7 +270,7 @@ class _Trainer:
 
     def load(self) -> None:
         ckpt = torch.load(self.root / "checkpoint.pt", map_location=self.device, weights_only=False)
-        self.model.load_state_dict(ckpt["model"])
+        _load_model_state(self.model, ckpt["model"], self.root / "checkpoint.pt")
         self.opt_head.load_state_dict(ckpt["opt_head"])
         self.opt_torso.load_state_dict(ckpt["opt_torso"])
         self.generator.set_state(ckpt["generator"])
@@ -287,12 +302,19 @@ class _Trainer:
     def code(self, frame: int, smooth: bool) -> torch.Tensor:
         return self.model.frame_code(self.windows, frame, smooth)
 
+    def maybe_update_occupancy(self, part: str, step: int, iters: int, pose, code: torch.Tensor) -> None:
+        """Every ``occupancy_every`` iterations from ``occupancy_start``, re-estimate the layer's grid."""
+        if self.model.config.occupancy_resolution <= 0 or step < self.tcfg.occupancy_start * iters:
+            return
+        if step % self.tcfg.occupancy_every == 0:
+            update_occupancy(self.model, part, pose, code.detach(), generator=self.generator)  # type: ignore[arg-type]
+
     # ---- stages
     def _loop(self, stage: str, iters: int, step_fn: Callable[[int], tuple[float, float]], max_steps: int | None) -> None:
         """Run ``step_fn(step) -> (loss, fine mse)`` until ``iters``; log means over each log window."""
         start_step = getattr(self, f"{stage}_step")
         bar = tqdm(total=iters, initial=start_step, desc=f"train {stage}", unit="it", disable=not self.progress, dynamic_ncols=True)
-        window_t, window_n, window_loss, window_mse = time.perf_counter(), 0, 0.0, 0.0
+        window_t, window_n, window_loss, window_mse, window_samples = time.perf_counter(), 0, 0.0, 0.0, self.samples
         done_here = 0
         while getattr(self, f"{stage}_step") < iters:
             if max_steps is not None and done_here >= max_steps:
@@ -310,10 +332,12 @@ class _Trainer:
             if (step + 1) % self.tcfg.log_every == 0 or step + 1 == iters:
                 now = time.perf_counter()
                 rays_per_s = window_n * self.tcfg.rays / max(now - window_t, 1e-9)
+                samples_per_s = (self.samples - window_samples) / max(now - window_t, 1e-9)
                 loss, psnr = window_loss / window_n, _psnr(window_mse / window_n)
-                window_t, window_n, window_loss, window_mse = now, 0, 0.0, 0.0
+                window_t, window_n, window_loss, window_mse, window_samples = now, 0, 0.0, 0.0, self.samples
                 bar.set_postfix(loss=f"{loss:.2e}", psnr=f"{psnr:.2f}", rays_s=f"{rays_per_s:.0f}")
-                self.log({"stage": stage, "step": step + 1, "loss": loss, "psnr": psnr, "rays_per_s": rays_per_s, "elapsed": self.elapsed[stage]})
+                row = {"stage": stage, "step": step + 1, "loss": loss, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
+                self.log({**row, "elapsed": self.elapsed[stage]})
             if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
                 self.save()
         bar.close()
@@ -334,7 +358,9 @@ class _Trainer:
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
             target = torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
             code = self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters)
+            self.maybe_update_occupancy("head", step, tcfg.head_iters, pose, code)
             out = render_part(self.model, "head", self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.generator)
+            self.samples += out.samples_evaluated
             return _optimise(out, target, self.is_head[frame, pix], tcfg.mask_weight, self.opt_head)
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
@@ -379,7 +405,9 @@ class _Trainer:
             n_person = int(round(tcfg.torso_person_rays * tcfg.rays)) if person.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
             target = self.frames[frame, pix]
+            self.maybe_update_occupancy("torso", step, tcfg.torso_iters, pose, codes[frame])
             out = render_part(self.model, "torso", self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.generator)
+            self.samples += out.samples_evaluated
             return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso)
 
         self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
