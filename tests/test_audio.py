@@ -232,6 +232,24 @@ def test_audio_networks() -> None:
         att(torch.randn(4, 7, 64))
 
 
+def test_attention_can_start_near_the_identity() -> None:
+    torch.manual_seed(0)
+    codes = AudioNet(in_dim=29, code_dim=64)(torch.randn(40, 8, 16, 29)).detach()  # (40, 8, 64)
+    paper = AudioAttNet(64, 8).weights(codes)
+    torch.manual_seed(1)
+    centred = AudioAttNet(64, 8, centre_logit=4.0).weights(codes)
+    # Paper initialisation: close to a uniform average. Centred: mostly the frame itself.
+    assert paper.max() < 0.4
+    assert centred.argmax(dim=-1).eq(4).all() and centred[:, 4].min() > 0.7
+    # The frame itself sits where TalkingHead.neighbours puts it.
+    from adnerf.talking_head import ModelConfig, TalkingHead
+    from adnerf.fields import fast_config
+
+    head = fast_config(64)
+    model = TalkingHead(ModelConfig(29, head, head, fast_config(73), fast_config(73), ((-1, -1, -1), (1, 1, 1)), ((-1, -1, 1), (1, 1, 3))))
+    assert int(model.neighbours(10, 100)[model.config.att_len // 2]) == 10
+
+
 def test_npy_windows(tmp_path: Path) -> None:
     np.save(tmp_path / "aud.npy", np.zeros((10, 16, 29), np.float32))
     assert F.load_npy_windows(tmp_path / "aud.npy", 10).shape == (10, 16, 29)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -14,7 +16,7 @@ from adnerf.data import load_dataset
 from adnerf.encodings import TriPlaneEncoding
 from adnerf.pose import HeadPose, euler_rotation
 from adnerf.synth import SynthConfig, synthesize
-from adnerf.talking_head import TalkingHead, layer_bounds, layer_occupancy, model_config, render_frame, render_part, update_occupancy
+from adnerf.talking_head import TalkingHead, layer_bounds, layer_occupancy, mixed_precision, model_config, render_frame, render_part, update_occupancy
 from adnerf.train import RunError, TrainConfig, _load_model_state, train
 
 TINY = SynthConfig(seconds=1.6, size=32, voice="formant", seed=5)
@@ -202,3 +204,26 @@ def test_bench_fields_cli_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "fields", "--configs", "nope", "--budget", "1"]) == 2
     assert "unknown field configurations" in capsys.readouterr().err
     assert main(["bench", "fields", "--budget", "0"]) == 2
+
+
+def test_bf16_autocast_runs_the_fields_in_bf16_and_composites_in_full_precision(tiny: Path, tmp_path: Path) -> None:
+    model, ds = _model(tiny)
+    model.eval()
+    pose, code = ds.head_pose(0), torch.randn(model.config.audio_dim)
+    rays = ds.meta.camera().rays().flatten()
+    near, far = layer_bounds(model, "head", pose)(rays)
+    rays = rays[far > near]
+    with torch.no_grad():
+        reference = render_part(model, "head", rays, pose, code)
+        with mixed_precision("cpu", "bf16"):
+            raw = model.head(rays.origins + 6.0 * rays.directions, rays.directions, pose=pose, audio=code)
+            half = render_part(model, "head", rays, pose, code)
+    assert raw.density.dtype == torch.bfloat16  # the field really ran in bfloat16
+    assert half.final.weights.dtype == reference.final.weights.dtype != torch.bfloat16
+    assert torch.isfinite(half.final.rgb).all() and (half.final.rgb - reference.final.rgb).abs().max() < 0.05
+    assert isinstance(mixed_precision("cpu", "auto"), contextlib.nullcontext)  # auto: off on CPU
+    with pytest.raises(ValueError, match="amp must be one of"):
+        mixed_precision("cpu", "fp8")
+    run = train(tiny, tmp_path / "amp", config=TrainConfig(head_iters=6, torso_iters=3, rays=64, log_every=3, amp="bf16"), progress=False)
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert all(math.isfinite(r["loss"]) for r in rows) and {r["stage"] for r in rows} == {"head", "torso"}

@@ -54,15 +54,23 @@ class AudioAttNet(nn.Module):
 
     Args:
         code_dim: Code width.
-        seq_len: Number of neighbouring frames (paper: 8).
+        seq_len: Number of neighbouring frames (paper: 8); the frame itself is at position
+            ``seq_len // 2``.
+        centre_logit: Added to the initial score of the frame itself. 0 is the paper's
+            initialisation, whose weights start near uniform: switched on mid-training, it
+            replaces the code the field has learned to read by an 8-frame average. A positive
+            value starts the filter close to the identity (4: about 0.86 on the frame itself)
+            and lets it learn how much to smooth.
     """
 
-    def __init__(self, code_dim: int = 64, seq_len: int = 8) -> None:
+    def __init__(self, code_dim: int = 64, seq_len: int = 8, centre_logit: float = 0.0) -> None:
         super().__init__()
         self.code_dim, self.seq_len = code_dim, seq_len
         channels = [code_dim, 16, 8, 4, 2, 1]
         self.convs = nn.ModuleList(nn.Conv1d(a, b, kernel_size=3, stride=1, padding=1) for a, b in zip(channels[:-1], channels[1:]))
         self.score = nn.Linear(seq_len, seq_len)
+        with torch.no_grad():
+            self.score.bias[seq_len // 2] += centre_logit
 
     def weights(self, codes: Tensor) -> Tensor:
         """Attention weights ``(..., seq_len)`` (non-negative, summing to 1)."""

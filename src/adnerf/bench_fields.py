@@ -10,7 +10,8 @@ memory of its process (each configuration runs in a fresh process by default).
 
 Each configuration's schedule (learning-rate decay, when AudioAttNet and empty-space skipping
 start) is fitted to the budget: the number of iterations is estimated from the measured speed
-after a few iterations and corrected once more at a fifth of the budget.
+after a few iterations, corrected at a fifth of the budget, and stretched again whenever it runs
+out before the budget does.
 """
 
 from __future__ import annotations
@@ -155,7 +156,9 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
         bar = tqdm(total=round(budget), desc=f"bench {cfg.name}", unit="s", disable=not progress, dynamic_ncols=True)
 
         def train_until(seconds: float) -> None:
-            while tr.elapsed["head"] < seconds and tr.head_step < tr.tcfg.head_iters:
+            while tr.elapsed["head"] < seconds:
+                if tr.head_step >= tr.tcfg.head_iters:
+                    fit_schedule()  # the estimate ran out before the budget: stretch the schedule
                 tr.head_stage(1)
                 _sync(device)
                 bar.n = min(round(tr.elapsed["head"]), bar.total)

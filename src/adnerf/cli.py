@@ -78,7 +78,7 @@ def _cmd_bench_fields(args: argparse.Namespace) -> int:
             size=args.size,
             device=_device(args.device),
             seed=args.seed,
-            progress=not args.json,
+            progress=True,  # bars go to stderr; --json output stays clean on stdout
         )
     except ValueError as exc:
         raise CliError(str(exc)) from exc
@@ -173,6 +173,8 @@ def _train_config(args: argparse.Namespace):
             doc = json.loads(open(args.config).read())
         except (OSError, json.JSONDecodeError) as exc:
             raise CliError(f"{args.config}: not a readable JSON training config ({exc})") from exc
+    if getattr(args, "amp", None):
+        doc["amp"] = args.amp
     if args.iters is not None:
         if args.stage in ("head", "all"):
             doc["head_iters"] = args.iters
@@ -315,6 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("-o", "--output", required=True, help="run folder")
     tr.add_argument("--stage", choices=("head", "torso", "all"), default="all")
     tr.add_argument("--iters", type=int, default=None, help="iterations of the stage (with all: head; the torso gets half)")
+    tr.add_argument("--amp", choices=("auto", "bf16", "off"), default=None, help="mixed precision of the fields (default auto: bfloat16 on CUDA, off on CPU)")
     tr.add_argument("--device", default="cpu", help="cpu or cuda")
     tr.add_argument("--config", default=None, help="JSON file of TrainConfig fields (e.g. {\"rays\": 2048, \"preset\": \"paper\"})")
     tr.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")

@@ -37,7 +37,18 @@ from .atomic import atomic_path
 from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
 from .fields import check_config_keys
 from .renderer import RenderOutput
-from .talking_head import ModelConfig, TalkingHead, layer_bounds, model_config, render_frame, render_part, torso_bounds, update_occupancy
+from .talking_head import (
+    AMP_MODES,
+    ModelConfig,
+    TalkingHead,
+    layer_bounds,
+    mixed_precision,
+    model_config,
+    render_frame,
+    render_part,
+    torso_bounds,
+    update_occupancy,
+)
 
 __all__ = ["RunError", "TrainConfig", "load_run", "train"]
 
@@ -75,12 +86,14 @@ class TrainConfig:
             evaluates both fields once per cell under the current frame's condition).
         checkpoint_every: Iterations between checkpoints.
         log_every: Iterations between log lines.
+        amp: Mixed precision of the field evaluations: ``"auto"`` (bfloat16 on CUDA, off on
+            CPU), ``"bf16"`` or ``"off"``; the compositor and the losses stay in float32.
         seed: Seed of the initialisation and of the ray sampling.
         preset: Field preset (``"fast"`` or ``"paper"``; see :func:`~adnerf.talking_head.model_config`).
     """
 
-    head_iters: int = 3000
-    torso_iters: int = 1500
+    head_iters: int = 4000
+    torso_iters: int = 2500
     rays: int = 1024
     lr: float = 1e-2
     lr_audio: float = 2e-3
@@ -93,6 +106,7 @@ class TrainConfig:
     occupancy_every: int = 16
     checkpoint_every: int = 250
     log_every: int = 25
+    amp: str = "auto"
     seed: int = 0
     preset: str = "fast"
 
@@ -106,6 +120,8 @@ class TrainConfig:
             raise ValueError("learning rates must be positive and lr_final in (0, 1]")
         if not (0 <= self.att_start <= 1 and 0 <= self.occupancy_start <= 1):
             raise ValueError("att_start and occupancy_start must lie in [0, 1]")
+        if self.amp not in AMP_MODES:
+            raise ValueError(f"amp must be one of {AMP_MODES}; got {self.amp!r}")
         if self.mask_weight < 0:
             raise ValueError("mask_weight must be >= 0")
         if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1):
@@ -359,7 +375,8 @@ class _Trainer:
             target = torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
             code = self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters)
             self.maybe_update_occupancy("head", step, tcfg.head_iters, pose, code)
-            out = render_part(self.model, "head", self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.generator)
+            with mixed_precision(self.device, tcfg.amp):
+                out = render_part(self.model, "head", self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.generator)
             self.samples += out.samples_evaluated
             return _optimise(out, target, self.is_head[frame, pix], tcfg.mask_weight, self.opt_head)
 
@@ -379,7 +396,7 @@ class _Trainer:
         plate = self.plate.reshape(self.camera.height, self.camera.width, 3)
         out = torch.zeros_like(self.frames)
         for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
-            r = render_frame(self.model, self.camera, self.ds.head_pose(frame, device=self.device), codes[frame], plate, torso=False)
+            r = render_frame(self.model, self.camera, self.ds.head_pose(frame, device=self.device), codes[frame], plate, torso=False, amp=self.tcfg.amp)
             out[frame] = r.head_on_plate.reshape(-1, 3)
         _save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
         return out
@@ -406,7 +423,8 @@ class _Trainer:
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
             target = self.frames[frame, pix]
             self.maybe_update_occupancy("torso", step, tcfg.torso_iters, pose, codes[frame])
-            out = render_part(self.model, "torso", self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.generator)
+            with mixed_precision(self.device, tcfg.amp):
+                out = render_part(self.model, "torso", self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.generator)
             self.samples += out.samples_evaluated
             return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso)
 
