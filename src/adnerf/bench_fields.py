@@ -45,7 +45,6 @@ __all__ = [
     "format_fields_table",
     "load_rows",
     "plot_fields",
-    "rows_summary",
     "run_config",
 ]
 
@@ -118,13 +117,12 @@ def _eval_psnr(tr: _Trainer, evalset: list[tuple[int, torch.Tensor]]) -> float:
     """PSNR of the head over the plate along the held-out rays, against the stage-1 target."""
     model = tr.model
     model.eval()
-    smooth = tr.head_step > tr.tcfg.att_start * tr.tcfg.head_iters
     se, n = 0.0, 0
     for frame, pix in evalset:
         pose = tr.ds.head_pose(frame, device=tr.device)
-        code = model.frame_code(tr.windows, frame, smooth)
+        code = model.frame_code(tr.windows, frame, tr.smooth_audio)
         out = render_part(model, "head", tr.rays[pix], pose, code, background=tr.plate[pix])
-        target = torch.where(tr.is_head[frame, pix, None], tr.frames[frame, pix], tr.plate[pix])
+        target = tr.head_target(frame, pix)
         se += float((out.final.rgb.float().clamp(0, 1) - target).square().sum())
         n += target.numel()
     model.train()
@@ -188,8 +186,7 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
         model = tr.model.eval()
         plate = tr.plate.reshape(tr.camera.height, tr.camera.width, 3)
         frames = [f for f, _ in evalset] or ds.meta.train[:1]
-        smooth = tr.head_step > tr.tcfg.att_start * tr.tcfg.head_iters
-        codes = {f: model.frame_code(tr.windows, f, smooth).detach() for f in frames}
+        codes = {f: model.frame_code(tr.windows, f, tr.smooth_audio).detach() for f in frames}
         render_frame(model, tr.camera, ds.head_pose(frames[0], device=device), codes[frames[0]], plate, torso=False)
         n_frames, start = 0, time.perf_counter()
         while n_frames < 3 and (n_frames == 0 or time.perf_counter() - start < 30):
@@ -346,9 +343,3 @@ def plot_fields(rows: list[dict], path: str | Path | None = None, ax=None):  # n
     if path is not None:
         fig.savefig(path)
     return fig
-
-
-def rows_summary(rows: list[dict]) -> dict:
-    """Plain summary of a run (for notes): final PSNR, speed-up and fps per configuration."""
-    return {r["config"]: {k: r.get(k) for k in ("psnr_final", "seconds_to_reference_psnr", "speedup_vs_reference", "render_fps")} for r in rows}
-

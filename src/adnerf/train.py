@@ -318,6 +318,15 @@ class _Trainer:
     def code(self, frame: int, smooth: bool) -> torch.Tensor:
         return self.model.frame_code(self.windows, frame, smooth)
 
+    @property
+    def smooth_audio(self) -> bool:
+        """Whether the finished stage-1 iterations have switched AudioAttNet on (as :attr:`Run.smooth_audio`)."""
+        return self.head_step > self.tcfg.att_start * self.tcfg.head_iters
+
+    def head_target(self, frame: int, pix: torch.Tensor) -> torch.Tensor:
+        """Stage-1 target colours ``(R, 3)`` of pixels ``pix``: the frame on head pixels, the plate elsewhere."""
+        return torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
+
     def maybe_update_occupancy(self, part: str, step: int, iters: int, pose, code: torch.Tensor) -> None:
         """Every ``occupancy_every`` iterations from ``occupancy_start``, re-estimate the layer's grid."""
         if self.model.config.occupancy_resolution <= 0 or step < self.tcfg.occupancy_start * iters:
@@ -372,7 +381,7 @@ class _Trainer:
             mouth = self.mouth_pixels(pose)
             n_mouth = int(round(tcfg.mouth_rays * tcfg.rays)) if mouth.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
-            target = torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
+            target = self.head_target(frame, pix)
             code = self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters)
             self.maybe_update_occupancy("head", step, tcfg.head_iters, pose, code)
             with mixed_precision(self.device, tcfg.amp):
@@ -391,8 +400,7 @@ class _Trainer:
             if cached["head_step"] == self.head_step:
                 return cached["renders"].float()
         self.model.eval()
-        smooth = self.head_step > self.tcfg.att_start * self.tcfg.head_iters
-        codes = self.model.all_codes(self.windows, smooth)
+        codes = self.model.all_codes(self.windows, self.smooth_audio)
         plate = self.plate.reshape(self.camera.height, self.camera.width, 3)
         out = torch.zeros_like(self.frames)
         for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
@@ -406,9 +414,8 @@ class _Trainer:
         if self.head_step < tcfg.head_iters:
             raise RunError(f"stage 2 needs a finished stage 1 ({self.head_step}/{tcfg.head_iters} head iterations); run --stage head first")
         backgrounds = self.head_renders()
-        smooth = self.head_step > tcfg.att_start * tcfg.head_iters
         with torch.no_grad():
-            codes = self.model.all_codes(self.windows, smooth)
+            codes = self.model.all_codes(self.windows, self.smooth_audio)
         near, far = torso_bounds(self.model.config, self.rays.origins)(self.rays)
         candidates = torch.nonzero(far > near)[:, 0]
         sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
