@@ -10,11 +10,11 @@ from pathlib import Path
 import nbformat
 
 ROOT = Path(__file__).resolve().parents[1]
+md = nbformat.v4.new_markdown_cell
+code = nbformat.v4.new_code_cell
 
 
 def components() -> nbformat.NotebookNode:
-    md = nbformat.v4.new_markdown_cell
-    code = nbformat.v4.new_code_cell
     cells = [
         md("# adnerf components: cameras -> rays -> samples -> field -> compositor -> pixels\n\n"
            "This walkthrough builds every stage by hand on an analytic scene whose answer is known, "
@@ -74,8 +74,6 @@ def _notebook(cells: list) -> nbformat.NotebookNode:
 
 
 def quickstart() -> nbformat.NotebookNode:
-    md = nbformat.v4.new_markdown_cell
-    code = nbformat.v4.new_code_cell
     cells = [
         md("# Quickstart: a talking head from a synthetic video\n\n"
            "The demo in small: synthesise a scene with exact ground truth, train the head (stage 1) and the "
@@ -120,8 +118,6 @@ def quickstart() -> nbformat.NotebookNode:
 
 
 def error_vs_runtime() -> nbformat.NotebookNode:
-    md = nbformat.v4.new_markdown_cell
-    code = nbformat.v4.new_code_cell
     cells = [
         md("# Error against run time\n\n"
            "Two trade-offs, measured: (1) how fast each field configuration learns the head of the synthetic scene "

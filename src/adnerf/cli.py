@@ -14,14 +14,23 @@ class CliError(Exception):
     """An error with a message meant for the user (printed without a traceback)."""
 
 
-def _positive_int_list(text: str) -> tuple[int, ...]:
-    try:
-        values = tuple(int(v) for v in text.split(","))
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from exc
-    if not values or any(v < 1 for v in values):
-        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
-    return values
+def _positive_list(cast: type, what: str):
+    """An argparse type: comma-separated positive values of type ``cast``."""
+
+    def parse(text: str) -> tuple:
+        try:
+            values = tuple(cast(v) for v in text.split(","))
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}") from exc
+        if not values or any(not v > 0 for v in values):
+            raise argparse.ArgumentTypeError(f"expected positive {what}, got {text!r}")
+        return values
+
+    return parse
+
+
+_positive_int_list = _positive_list(int, "integers")
+_positive_float_list = _positive_list(float, "numbers")
 
 
 def _device(name: str) -> str:
@@ -54,21 +63,9 @@ def _cmd_bench_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive_float_list(text: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from exc
-    if not values or any(not v > 0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
-    return values
-
-
 def _cmd_bench_fields(args: argparse.Namespace) -> int:
     from .bench_fields import bench_fields, format_fields_table, plot_fields
 
-    if args.budget <= 0:
-        raise CliError(f"--budget must be > 0 seconds; got {args.budget}")
     try:
         rows = bench_fields(
             args.dataset,

@@ -270,6 +270,11 @@ def _layer_fields(model: TalkingHead, part: Part) -> tuple[nn.Module, nn.Module]
     raise ValueError(f"part must be head or torso; got {part!r}")
 
 
+def _layer_grid(model: TalkingHead, part: Part) -> OccupancyGrid | None:
+    """The occupancy grid of a layer (``None`` when the model has none)."""
+    return model.head_occupancy if part == "head" else model.torso_occupancy
+
+
 def layer_occupancy(model: TalkingHead, part: Part, pose: HeadPose) -> Callable[[Tensor], Tensor] | None:
     """The empty-space predicate of a layer on camera-space points ``(..., 3) -> bool (...)``.
 
@@ -277,7 +282,7 @@ def layer_occupancy(model: TalkingHead, part: Part, pose: HeadPose) -> Callable[
     estimated yet. The head's grid lives in canonical space, so points are moved by ``pose``
     first; the torso's lives in camera space.
     """
-    grid = model.head_occupancy if part == "head" else model.torso_occupancy
+    grid = _layer_grid(model, part)
     if grid is None or not grid.estimated:
         return None
     if part == "head":
@@ -316,7 +321,7 @@ def update_occupancy(
     Returns:
         The occupied fraction of the cells (after dilation).
     """
-    grid = model.head_occupancy if part == "head" else model.torso_occupancy
+    grid = _layer_grid(model, part)
     if grid is None:
         raise ValueError("this model has no occupancy grids (occupancy_resolution = 0)")
     coarse, fine = _layer_fields(model, part)
