@@ -140,9 +140,10 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from .features import FeatureError
     from .io import MediaError
     from .render_video import RenderError
+    from .preprocess.pipeline import PreprocessError
     from .train import RunError
 
-    return (DatasetError, FeatureError, MediaError, RenderError, RunError)
+    return (DatasetError, FeatureError, MediaError, PreprocessError, RenderError, RunError)
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -158,6 +159,41 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     with tqdm(total=int(round(cfg.seconds * cfg.fps)), desc="synth frames", unit="frame") as bar:
         out = synthesize(args.output, cfg, progress=lambda step, done, total: bar.update(done - bar.n), overwrite=args.overwrite)
     print(f"{out}: synthetic talking head, {cfg.seconds:g} s at {cfg.fps:g} fps, {cfg.size}x{cfg.size}")
+    return 0
+
+
+def _cmd_preprocess(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .preprocess.pipeline import PreprocessConfig, preprocess_video
+
+    cfg = PreprocessConfig(parser=args.parser, features=args.features, flow=args.flow, focal=args.focal, test_fraction=args.test_fraction)
+    bars: dict[str, tqdm] = {}
+
+    def progress(step: str, done: int, total: int) -> None:
+        bar = bars.get(step)
+        if bar is None:
+            bar = bars[step] = tqdm(total=total, desc=step, unit="step" if total == 1 else "frame", leave=True)
+        bar.update(done - bar.n)
+        if done >= total:
+            bar.close()
+
+    report = preprocess_video(args.video, args.output, cfg, progress=progress, overwrite=args.overwrite)
+    keys = ("frames", "parse_face_failures", "pose_reprojection_rms_px", "plate_filled_fraction", "timings_s")
+    print(json.dumps({k: report[k] for k in keys}, indent=1))
+    print(f"{args.output}: dataset written (report: {args.output}/preprocess_report.json, .png)")
+    return 0
+
+
+def _cmd_check_preprocess(args: argparse.Namespace) -> int:
+    from .preprocess.check import check_preprocess
+
+    out = check_preprocess(args.dataset, args.truth)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        for k, v in out.items():
+            print(f"{k:32s} {v}")
     return 0
 
 
@@ -308,6 +344,23 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--features", choices=("logmel", "phonemes"), default="logmel", help="audio features stored with the dataset")
     synth.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     synth.set_defaults(func=_cmd_synth)
+
+    pre = sub.add_parser("preprocess", help="turn a static-camera talking-head video into a dataset (parsing, head pose, plate)")
+    pre.add_argument("video", help="video file with an audio track")
+    pre.add_argument("-o", "--output", required=True, help="dataset folder to create")
+    pre.add_argument("--parser", default="classical", help="face parser: classical (default, no weights) or bisenet:CHECKPOINT")
+    pre.add_argument("--features", choices=("logmel", "phonemes", "none"), default="logmel", help="audio features (none: silent dataset, allowed without audio)")
+    pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
+    pre.add_argument("--focal", type=float, default=None, help="focal length in pixels (default 1.33 x the larger frame side)")
+    pre.add_argument("--test-fraction", type=float, default=0.1, help="fraction of frames at the end held out for testing")
+    pre.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    pre.set_defaults(func=_cmd_preprocess)
+
+    chk = sub.add_parser("check-preprocess", help="compare a preprocessed synthetic video with the scene's truth (pose, parsing, plate)")
+    chk.add_argument("dataset", help="dataset written by adnerf preprocess from SYNTH/video.mp4")
+    chk.add_argument("--truth", required=True, help="the synthetic scene folder (adnerf synth output)")
+    chk.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    chk.set_defaults(func=_cmd_check_preprocess)
 
     tr = sub.add_parser("train", help="train the head (stage 1) and torso (stage 2) fields on a dataset")
     tr.add_argument("dataset", help="dataset folder")

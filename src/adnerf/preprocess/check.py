@@ -1,0 +1,118 @@
+"""``adnerf check-preprocess``: a preprocessed synthetic video against the scene's exact truth.
+
+* **Poses**: estimated and true poses share the camera but not the canonical frame nor the scale,
+  so they are compared after the best similarity: a canonical rotation ``G``, offset ``g`` and
+  scale ``s`` with ``R_true ~ R_est G`` and ``s t_true ~ R_est g + t_est`` (:func:`align_poses`).
+  Rotation error is the angle of ``R_est G R_true^T``; translation error is the distance of the
+  aligned translation from the true one, in units of the true head width.
+* **Parsing**: intersection over union per class (background, head, torso), averaged over frames.
+* **Plate**: PSNR against the true background on pixels the video ever shows as background.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..data import load_dataset
+
+__all__ = ["align_poses", "parsing_iou", "check_preprocess", "BARS"]
+
+BARS = {"rotation_median_deg": 1.0, "translation_median_head_widths": 0.02, "iou_mean": 0.90, "plate_psnr_seen": 30.0}
+TRUE_HEAD_WIDTH = 1.6  # the synthetic head's width in its scene units
+
+
+def align_poses(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Similarity alignment of estimated to true poses and per-frame errors.
+
+    Args:
+        est, true: ``(N, 4, 4)`` head-canonical -> camera poses.
+
+    Returns:
+        ``(rotation error (N,) degrees, translation error (N,) in the true scene's units,
+        {"scale": s, "G": (3, 3), "g": (3,)})``.
+    """
+    Re, te = est[:, :3, :3], est[:, :3, 3]
+    Rt, tt = true[:, :3, :3], true[:, :3, 3]
+    u, _, vt = np.linalg.svd((Re.transpose(0, 2, 1) @ Rt).sum(0))
+    G = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    # Linear least squares in (g, s): R_est g - s t_true = -t_est.
+    n = len(est)
+    A = np.concatenate([Re, -tt[:, :, None]], axis=2).reshape(3 * n, 4)
+    sol, *_ = np.linalg.lstsq(A, -te.reshape(-1), rcond=None)
+    g, s = sol[:3], sol[3]
+    rel = Re @ G @ Rt.transpose(0, 2, 1)
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    rot = np.degrees(np.arccos(cos))
+    aligned = (np.einsum("nij,j->ni", Re, g) + te) / s
+    return rot, np.linalg.norm(aligned - tt, axis=1), {"scale": float(s), "G": G, "g": g}
+
+
+def parsing_iou(pred: np.ndarray, true: np.ndarray, classes: tuple[int, ...] = (0, 1, 2)) -> dict[int, float]:
+    """Mean over frames of the intersection over union of each class (frames where a class is
+    absent from both maps are skipped for that class)."""
+    out = {}
+    for c in classes:
+        a, b = pred == c, true == c
+        inter = (a & b).sum((1, 2))
+        union = (a | b).sum((1, 2))
+        valid = union > 0
+        out[c] = float((inter[valid] / union[valid]).mean()) if valid.any() else float("nan")
+    return out
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)) / 255.0**2
+    return math.inf if mse == 0 else 10.0 * math.log10(1.0 / mse)
+
+
+def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
+    """Compare a preprocessed dataset with a synthetic scene's truth; see the module docstring.
+
+    Args:
+        dataset: Folder written by ``adnerf preprocess`` from the synthetic scene's ``video.mp4``.
+        truth: The synthetic scene's folder (with ``truth/``).
+
+    Returns:
+        A dict of figures, the bars, and ``passed`` per bar.
+
+    Raises:
+        adnerf.data.DatasetError: A folder is not a dataset, the truth folder has no ``truth/``, or
+            the two have different frame counts or sizes.
+    """
+    from ..data import DatasetError
+
+    est = load_dataset(dataset, truth=False)
+    ref = load_dataset(truth)
+    if ref.truth is None:
+        raise DatasetError(f"{truth}: has no truth/ folder (use the folder adnerf synth wrote)")
+    if est.frames.shape != ref.frames.shape:
+        raise DatasetError(f"{dataset}: frames {tuple(est.frames.shape)} do not match the truth's {tuple(ref.frames.shape)}")
+    rot, trans, sim = align_poses(est.poses, ref.truth.poses)
+    iou = parsing_iou(est.parsing, ref.truth.parsing)
+    seen = (ref.truth.parsing == 0).any(0)
+    plate_psnr = _psnr(est.background[seen], ref.background[seen])
+    out = {
+        "frames": int(len(est.poses)),
+        "rotation_median_deg": float(np.median(rot)),
+        "rotation_max_deg": float(rot.max()),
+        "translation_median_head_widths": float(np.median(trans) / TRUE_HEAD_WIDTH),
+        "translation_max_head_widths": float(trans.max() / TRUE_HEAD_WIDTH),
+        "scale": sim["scale"],
+        "iou_background": iou[0],
+        "iou_head": iou[1],
+        "iou_torso": iou[2],
+        "iou_mean": float(np.mean(list(iou.values()))),
+        "plate_psnr_seen": plate_psnr,
+        "plate_psnr_all": _psnr(est.background, ref.background),
+        "bars": BARS,
+    }
+    out["passed"] = {
+        "rotation": out["rotation_median_deg"] <= BARS["rotation_median_deg"],
+        "translation": out["translation_median_head_widths"] <= BARS["translation_median_head_widths"],
+        "parsing": out["iou_mean"] >= BARS["iou_mean"],
+        "plate": out["plate_psnr_seen"] >= BARS["plate_psnr_seen"],
+    }
+    return out

@@ -1,0 +1,230 @@
+"""Head pose per frame: tracks -> perspective-n-point initialisation -> bundle adjustment -> gauge.
+
+Scene units: the head is ``head_width`` units wide (1.6 by default, as in the synthetic scene),
+measured on the reference frame's head silhouette; the canonical origin is the centre of the
+ellipsoid fitted to that silhouette and the canonical axes are those of the mean head orientation
+(after adjustment, the poses are re-expressed so that their chordal mean rotation is the identity).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+
+from ..data import LABEL_HEAD
+from .bundle import bundle_adjust, ellipsoid_points
+from .tracking import Tracks
+
+__all__ = ["HeadTrack", "head_boxes", "estimate_head_poses", "mean_rotation", "smooth_poses"]
+
+
+@dataclass
+class HeadTrack:
+    """Estimated head poses.
+
+    Attributes:
+        poses: ``(N, 4, 4)`` float64 head-canonical -> camera.
+        points: ``(P, 3)`` canonical track points (NaN for tracks no frame could place).
+        radii: ``(3,)`` semi-axes of the head ellipsoid used for initialisation (canonical units).
+        reference: The frame whose pose fixed the gauge.
+        rms_before, rms, median: Reprojection errors in pixels (initial guess, adjusted RMS,
+            adjusted median).
+        iterations: LM iterations.
+        inlier_fraction: Observations within the Huber threshold.
+    """
+
+    poses: np.ndarray
+    points: np.ndarray
+    radii: np.ndarray
+    reference: int
+    rms_before: float
+    rms: float
+    median: float
+    iterations: int
+    inlier_fraction: float
+
+
+def head_boxes(labels: np.ndarray) -> np.ndarray:
+    """Bounding boxes ``(N, 4)`` ``[x0, y0, x1, y1]`` (pixel edges) of the head label; NaN when absent."""
+    out = np.full((len(labels), 4), np.nan)
+    for i, lab in enumerate(labels):
+        head = lab == LABEL_HEAD
+        rows, cols = np.flatnonzero(head.any(1)), np.flatnonzero(head.any(0))
+        if len(rows):
+            out[i] = (cols[0], rows[0], cols[-1] + 1, rows[-1] + 1)
+    return out
+
+
+def _interpolate_poses(R: np.ndarray, t: np.ndarray, good: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of frames where ``good`` is False, linearly interpolated (rotation vectors relative
+    to the mean rotation of the good frames; ends held)."""
+    M = mean_rotation(R[good])
+    rel = np.stack([cv2.Rodrigues(M.T @ r)[0][:, 0] for r in R])
+    idx, miss = np.flatnonzero(good), np.flatnonzero(~good)
+    R, t = R.copy(), t.copy()
+    for k in range(3):
+        rel[miss, k] = np.interp(miss, idx, rel[idx, k])
+        t[miss, k] = np.interp(miss, idx, t[idx, k])
+    R[miss] = np.stack([M @ cv2.Rodrigues(rel[i])[0] for i in miss])
+    return R, t
+
+
+def mean_rotation(R: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations ``(N, 3, 3)``: the rotation nearest to their arithmetic mean."""
+    u, _, vt = np.linalg.svd(R.mean(0))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def smooth_poses(poses: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing over time (``sigma`` in frames) of rotation vectors and translations.
+
+    Rotations are smoothed as rotation vectors relative to their mean rotation (small angles for a
+    talking head), so there is no wrap-around; ``sigma <= 0`` returns a copy.
+    """
+    if sigma <= 0 or len(poses) < 3:
+        return poses.copy()
+    from scipy.ndimage import gaussian_filter1d
+
+    M = mean_rotation(poses[:, :3, :3])
+    rel = np.stack([cv2.Rodrigues(M.T @ r)[0][:, 0] for r in poses[:, :3, :3]])
+    rel = gaussian_filter1d(rel, sigma, axis=0, mode="nearest")
+    t = gaussian_filter1d(poses[:, :3, 3], sigma, axis=0, mode="nearest")
+    out = np.tile(np.eye(4), (len(poses), 1, 1))
+    out[:, :3, :3] = np.stack([M @ cv2.Rodrigues(v)[0] for v in rel])
+    out[:, :3, 3] = t
+    return out
+
+
+def _pnp(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    rvec, _ = cv2.Rodrigues(R)
+    ok, rvec, tvec = cv2.solvePnP(X, uv, K, None, rvec.copy(), t.reshape(3, 1).copy(), useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or not np.all(np.isfinite(tvec)) or tvec[2, 0] <= 0:
+        return None
+    return cv2.Rodrigues(rvec)[0], tvec[:, 0]
+
+
+def estimate_head_poses(
+    tracks: Tracks,
+    labels: np.ndarray,
+    intrinsics: tuple[float, float, float, float],
+    *,
+    head_width: float = 1.6,
+    reference: int = -1,
+    smooth_sigma: float = 0.0,
+    shape_sigma: float = 0.05,
+    iterations: int = 30,
+    progress: Callable[[int, float], None] | None = None,
+) -> HeadTrack:
+    """Head poses from point tracks (see the module docstring for the units and gauge).
+
+    Args:
+        tracks: Point tracks on the rigid part of the head.
+        labels: ``(N, H, W)`` parsing (head boxes for the initial depth and the ellipsoid).
+        intrinsics: ``(fx, fy, cx, cy)`` pixels.
+        head_width: Width of the head in scene units.
+        reference: Frame that fixes the gauge (must show the head); -1: the first frame with at
+            least 6 tracked points.
+        smooth_sigma: Temporal smoothing of the result in frames (0: none).
+        shape_sigma: Weight of the ellipsoid shape prior (see :func:`bundle_adjust`); 0 disables it.
+        iterations: Bundle-adjustment iterations.
+        progress: Called per LM iteration as ``progress(iteration, rms)``.
+
+    Returns:
+        A :class:`HeadTrack`.
+
+    Raises:
+        ValueError: The reference frame shows no head, or a frame has too few tracked points.
+    """
+    fx, fy, cx, cy = intrinsics
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
+    n = len(labels)
+    boxes = head_boxes(labels)
+    if reference < 0:  # the first frame with enough tracked points
+        counts = tracks.observed.sum(1)
+        reference = int(np.argmax(counts >= 6)) if (counts >= 6).any() else int(np.argmax(counts))
+    if not np.all(np.isfinite(boxes[reference])):
+        raise ValueError(f"frame {reference} shows no head; cannot anchor the head pose")
+    x0, y0, x1, y1 = boxes[reference]
+    z0 = fx * head_width / (x1 - x0)
+    height = (y1 - y0) * z0 / fy
+    radii = np.array([head_width / 2, height / 2, 0.55 * head_width])
+    R = np.tile(np.eye(3), (n, 1, 1))
+    t = np.zeros((n, 3))
+    t[reference] = ((0.5 * (x0 + x1) - cx) / fx * z0, (0.5 * (y0 + y1) - cy) / fy * z0, z0)
+    uv = tracks.uv
+    obs = tracks.observed
+    points = np.full((uv.shape[1], 3), np.nan)
+
+    def seed(i: int) -> None:
+        new = obs[i] & ~np.isfinite(points[:, 0])
+        if new.any():
+            got = ellipsoid_points(
+                torch.from_numpy(uv[i, new]),
+                torch.from_numpy(R[i]).expand(int(new.sum()), 3, 3),
+                torch.from_numpy(t[i]).expand(int(new.sum()), 3),
+                torch.from_numpy(radii),
+                intrinsics,
+            )
+            points[new] = got.numpy()
+
+    order = list(range(reference, n)) + list(range(reference - 1, -1, -1))
+    seed(reference)
+    for k, i in enumerate(order[1:], 1):
+        prev = order[k - 1]
+        known = obs[i] & np.isfinite(points[:, 0])
+        R[i], t[i] = R[prev], t[prev]
+        if known.sum() >= 6:
+            got = _pnp(points[known], uv[i, known], K, R[prev], t[prev])
+            if got is not None:
+                R[i], t[i] = got
+        seed(i)
+    # Frames with fewer than 3 tracked points are left out of the adjustment and interpolated.
+    good = obs.sum(1) >= 3
+    good[reference] = True
+    sub = np.flatnonzero(good)
+    seen_points = np.isfinite(points[:, 0]) & obs[sub].any(0)
+    result = bundle_adjust(
+        torch.from_numpy(R[sub]),
+        torch.from_numpy(t[sub]),
+        torch.from_numpy(points[seen_points]),
+        torch.from_numpy(uv[sub][:, seen_points]),
+        intrinsics,
+        fixed_frame=int(np.searchsorted(sub, reference)),
+        shape_radii=torch.from_numpy(radii) if shape_sigma > 0 else None,
+        shape_sigma=shape_sigma,
+        iterations=iterations,
+        progress=progress,
+    )
+    Rb, tb = R.copy(), t.copy()
+    Rb[sub], tb[sub] = result.R.numpy(), result.t.numpy()
+    if not good.all():
+        Rb, tb = _interpolate_poses(Rb, tb, good)
+    Xb = result.points.numpy()
+    # Gauge: canonical axes = the mean head orientation (R_i <- R_i M, X <- M^T X).
+    M = mean_rotation(Rb)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3] = Rb @ M
+    poses[:, :3, 3] = tb
+    poses = smooth_poses(poses, smooth_sigma)
+    return HeadTrack(
+        poses=poses,
+        points=_scatter(seen_points, Xb @ M),
+        radii=radii,
+        reference=reference,
+        rms_before=result.rms_before,
+        rms=result.rms,
+        median=result.median,
+        iterations=result.iterations,
+        inlier_fraction=result.inlier_fraction,
+    )
+
+
+def _scatter(mask: np.ndarray, values: np.ndarray) -> np.ndarray:
+    out = np.full((len(mask),) + values.shape[1:], np.nan)
+    out[mask] = values
+    return out

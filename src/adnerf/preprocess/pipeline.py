@@ -1,0 +1,474 @@
+"""``adnerf preprocess``: a user's video -> an adnerf dataset, step by step and resumable.
+
+Steps (each timed, each with a progress bar, each stored in a work folder beside the destination
+so that a re-run after a failure or a kill redoes only the steps that did not finish, or whose
+settings changed):
+
+1. ``decode``   frames and audio (PyAV); checks length and audio presence.
+2. ``features`` per-frame audio feature windows (:mod:`adnerf.features`).
+3. ``parse``    background / head / torso label maps (:mod:`adnerf.preprocess.parsing`), face
+                presence per frame, camera-motion check.
+4. ``pose``     point tracks on the rigid head (dense flow), bundle adjustment, re-observation of
+                every track against its seed frame, adjustment again (:mod:`.tracking`,
+                :mod:`.bundle`, :mod:`.headpose`).
+5. ``plate``    background plate (:mod:`.plate`).
+6. ``write``    bounds, splits, ``meta.json``, the report (``preprocess_report.json`` and
+                ``preprocess_report.png``); the dataset is written to a temporary folder and
+                renamed into place, then the work folder is removed.
+
+Scene units: the head is 1.6 units wide (as in the synthetic scene), so boxes and near/far have
+the same meaning in both.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import sys
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset, write_wav
+from ..io import AudioTrack, MediaError, read_audio, read_video
+
+__all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "STEPS"]
+
+STEPS = ("decode", "features", "parse", "pose", "plate", "write")
+FEATURE_CHOICES = ("logmel", "phonemes", "none")
+
+
+class PreprocessError(ValueError):
+    """The video cannot become a dataset (no face, too short, no audio, ...); nothing is written."""
+
+
+@dataclass
+class PreprocessConfig:
+    """Settings of :func:`preprocess_video`.
+
+    Attributes:
+        parser: Parsing backend (``"classical"`` or ``"bisenet:PATH"``).
+        features: Audio features: ``"logmel"``, ``"phonemes"`` or ``"none"`` (silent dataset).
+        flow: Dense optical flow: ``"dis"`` or ``"deepflow"``.
+        focal: Focal length in pixels; ``None`` assumes ``1.33 * max(width, height)`` (a 41 degree
+            field of view; the synthetic scene's camera). Pose accuracy depends on it: give the
+            real value when it is known.
+        test_fraction: Fraction of frames, at the end, held out for testing.
+        head_width: Head width in scene units.
+        min_seconds: Shortest accepted video.
+        min_face_fraction: Fewest frames, as a fraction, that must show a face.
+        extend_passes: Passes of re-observing tracks against their seed frames (0: chained tracks only).
+        shape_sigma: Weight of the ellipsoid prior in bundle adjustment (0: none).
+        smooth_sigma: Temporal smoothing of the poses in frames.
+    """
+
+    parser: str = "classical"
+    features: str = "logmel"
+    flow: str = "dis"
+    focal: float | None = None
+    test_fraction: float = 0.1
+    head_width: float = 1.6
+    min_seconds: float = 2.0
+    min_face_fraction: float = 0.5
+    extend_passes: int = 2
+    shape_sigma: float = 0.0
+    smooth_sigma: float = 0.0
+
+    def validate(self) -> None:
+        """Raise :class:`PreprocessError` on impossible settings."""
+        if self.features not in FEATURE_CHOICES:
+            raise PreprocessError(f"--features must be one of {', '.join(FEATURE_CHOICES)}; got {self.features!r}")
+        if self.flow not in ("dis", "deepflow"):
+            raise PreprocessError(f"--flow must be dis or deepflow; got {self.flow!r}")
+        if self.focal is not None and not self.focal > 0:
+            raise PreprocessError(f"--focal must be positive; got {self.focal}")
+        if not 0.0 < self.test_fraction < 0.5:
+            raise PreprocessError(f"--test-fraction must lie in (0, 0.5); got {self.test_fraction}")
+
+
+# What each step's result depends on (a change re-runs the step and the ones after it).
+_STEP_KEYS = {
+    "decode": ("min_seconds",),
+    "features": ("features",),
+    "parse": ("parser", "min_face_fraction"),
+    "pose": ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "smooth_sigma"),
+    "plate": (),
+    "write": ("test_fraction",),
+}
+
+
+class _Work:
+    """The work folder: step outputs plus ``steps.json`` (per step: settings key and seconds)."""
+
+    def __init__(self, folder: Path, video: Path, config: PreprocessConfig) -> None:
+        self.folder = folder
+        folder.mkdir(parents=True, exist_ok=True)
+        self.record_path = folder / "steps.json"
+        self.record = json.loads(self.record_path.read_text()) if self.record_path.exists() else {}
+        stat = video.stat()
+        base = f"{video.resolve()}|{stat.st_size}|{stat.st_mtime_ns}"
+        self.keys = {}
+        for step in STEPS:
+            base += "|" + json.dumps({k: getattr(config, k) for k in _STEP_KEYS[step]}, sort_keys=True)
+            self.keys[step] = hashlib.sha256(base.encode()).hexdigest()[:16]
+
+    def done(self, step: str) -> bool:
+        return self.record.get(step, {}).get("key") == self.keys[step]
+
+    def finish(self, step: str, seconds: float) -> None:
+        self.record[step] = {"key": self.keys[step], "seconds": round(seconds, 3)}
+        tmp = self.record_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.record, indent=1))
+        tmp.replace(self.record_path)
+
+    def save(self, name: str, array: np.ndarray) -> None:
+        tmp = self.folder / f".{name}.tmp.npy"
+        np.save(tmp, array)
+        tmp.replace(self.folder / f"{name}.npy")
+
+    def load(self, name: str) -> np.ndarray:
+        return np.load(self.folder / f"{name}.npy")
+
+    def save_json(self, name: str, doc: dict) -> None:
+        tmp = self.folder / f".{name}.tmp"
+        tmp.write_text(json.dumps(doc, indent=1))
+        tmp.replace(self.folder / f"{name}.json")
+
+    def load_json(self, name: str) -> dict:
+        return json.loads((self.folder / f"{name}.json").read_text())
+
+
+Bar = Callable[[str, int, int], None]
+
+
+def _skin_fraction(frame: np.ndarray, mask: np.ndarray) -> float:
+    """Fraction of ``mask`` pixels with a skin-like chroma (YCrCb box of Chai and Ngan, widened)."""
+    if not mask.any():
+        return 0.0
+    ycc = cv2.cvtColor(frame, cv2.COLOR_RGB2YCrCb)[mask]
+    cr, cb = ycc[:, 1].astype(int), ycc[:, 2].astype(int)
+    return float(((cr >= 130) & (cr <= 180) & (cb >= 75) & (cb <= 135)).mean())
+
+
+def _camera_motion(frames: np.ndarray, labels: np.ndarray, pairs: int = 8, gap: int = 5) -> float:
+    """Median flow magnitude (pixels per frame) on background far from the person, over a few pairs."""
+    n = len(frames)
+    if n <= gap:
+        return 0.0
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (15, 15))
+    out = []
+    for i in np.linspace(0, n - 1 - gap, min(pairs, n - gap)).round().astype(int):
+        bg = (labels[i] == 0) & (labels[i + gap] == 0)
+        bg = cv2.erode(bg.astype(np.uint8), kernel) > 0
+        if bg.sum() < 100:
+            continue
+        a, b = (cv2.cvtColor(frames[j], cv2.COLOR_RGB2GRAY) for j in (i, i + gap))
+        flow = dis.calc(a, b, None)
+        out.append(float(np.median(np.linalg.norm(flow[bg], axis=1))) / gap)
+    return float(np.median(out)) if out else 0.0
+
+
+def _interpolate_missing(values: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """Linear interpolation over time of rows where ``good`` is False (ends held)."""
+    out = values.copy()
+    idx = np.flatnonzero(good)
+    for k in range(values.shape[1]):
+        out[~good, k] = np.interp(np.flatnonzero(~good), idx, values[idx, k])
+    return out
+
+
+def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> None:
+    v = read_video(video, audio=True)
+    n, h, w = v.frames.shape[:3]
+    seconds = float(v.timestamps[-1] - v.timestamps[0]) + (1.0 / v.fps if v.fps else 0.0)
+    if seconds < config.min_seconds:
+        raise PreprocessError(f"{video}: the video is {seconds:.2f} s long; preprocessing needs at least {config.min_seconds:g} s")
+    if v.audio is None and config.features != "none":
+        raise PreprocessError(f"{video}: the video has no audio track (use --features none to make a silent dataset)")
+    fps = v.fps if v.fps > 0 else (n - 1) / max(v.timestamps[-1] - v.timestamps[0], 1e-9)
+    work.save("frames", v.frames)
+    work.save("times", v.timestamps - v.timestamps[0])
+    if v.audio is not None:
+        # Sample 0 of the dataset's audio plays with frame 0: shift the audio to the first frame's time.
+        skip = int(round((v.timestamps[0] - v.audio.start) * v.audio.sample_rate))
+        samples = v.audio.samples[skip:] if skip >= 0 else np.concatenate([np.zeros(-skip, np.float32), v.audio.samples])
+        write_wav(work.folder / "audio.wav", AudioTrack(samples, v.audio.sample_rate, 0.0))
+    work.save_json("decode", {"fps": fps, "n": n, "width": w, "height": h, "seconds": seconds, "audio": v.audio is not None})
+    bar("decode", 1, 1)
+
+
+def _step_features(work: _Work, config: PreprocessConfig, bar: Bar) -> None:
+    from ..features import FeatureSpec, speech_windows
+
+    times = work.load("times")
+    if config.features == "none":
+        work.save("features", np.zeros((len(times), 16, 1), np.float32))
+    else:
+        audio = read_audio(work.folder / "audio.wav")
+        work.save("features", speech_windows(audio, times, FeatureSpec(kind=config.features)))
+    bar("features", 1, 1)
+
+
+def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+    from .parsing import make_parser
+
+    frames = work.load("frames")
+    try:
+        parser = make_parser(config.parser)
+    except ValueError as exc:
+        raise PreprocessError(str(exc)) from exc
+    labels = parser.parse(frames, progress=lambda d, t: bar("parse", d, t))
+    n, h, w = labels.shape
+    head_area = (labels == LABEL_HEAD).mean((1, 2))
+    skin = np.array([_skin_fraction(frames[i], labels[i] == LABEL_HEAD) for i in range(n)])
+    face = (head_area > 0.01) & (skin > 0.15)
+    if not face.any():
+        raise PreprocessError(f"{video}: no face found in any frame (parser {parser.name})")
+    if face.mean() < config.min_face_fraction:
+        raise PreprocessError(f"{video}: a face was found in only {face.sum()} of {n} frames ({face.mean():.0%}); at least {config.min_face_fraction:.0%} are needed")
+    # Frames without a face take the labels of the nearest frame with one (counted in the report).
+    good = np.flatnonzero(face)
+    for i in np.flatnonzero(~face):
+        labels[i] = labels[good[np.argmin(np.abs(good - i))]]
+    motion = _camera_motion(frames, labels)
+    doc = {"parser": parser.name, "face_frames": int(face.sum()), "face_failures": int((~face).sum()), "camera_motion_px_per_frame": motion}
+    if motion > 0.3:
+        msg = f"{video}: the background moves ({motion:.2f} px per frame): the camera does not look static; parsing, pose and the plate assume it is"
+        warnings.warn(msg, stacklevel=2)
+        print(f"warning: {msg}", file=sys.stderr)
+        doc["warning"] = msg
+    work.save("parsing", labels)
+    work.save_json("parse", doc)
+    return doc
+
+
+def _intrinsics(config: PreprocessConfig, w: int, h: int) -> tuple[float, float, float, float]:
+    f = config.focal if config.focal is not None else 1.33 * max(w, h)
+    return (float(f), float(f), w / 2.0, h / 2.0)
+
+
+def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+    from .headpose import estimate_head_poses
+    from .tracking import TrackConfig, extend_tracks, track_points
+
+    frames, labels = work.load("frames"), work.load("parsing")
+    info = work.load_json("decode")
+    K = _intrinsics(config, info["width"], info["height"])
+    track_cfg = TrackConfig(flow=config.flow)
+    tracks = track_points(frames, labels, track_cfg, progress=lambda d, t: bar("pose: tracks", d, t))
+    kw = dict(head_width=config.head_width, shape_sigma=config.shape_sigma)
+    est = estimate_head_poses(tracks, labels, K, **kw)
+    chained_obs = int(tracks.observed.sum())
+    for k in range(config.extend_passes):
+        P, X = est.poses, est.points
+
+        def predict(i: int, idx: np.ndarray) -> np.ndarray:
+            q = X[idx] @ P[i, :3, :3].T + P[i, :3, 3]
+            return np.stack([K[0] * q[:, 0] / q[:, 2] + K[2], K[1] * q[:, 1] / q[:, 2] + K[3]], 1)
+
+        tracks = extend_tracks(frames, labels, tracks, predict, track_cfg, reach=len(frames))
+        est = estimate_head_poses(tracks, labels, K, **kw, smooth_sigma=config.smooth_sigma if k == config.extend_passes - 1 else 0.0)
+        bar("pose: adjust", k + 1, config.extend_passes)
+    work.save("poses", est.poses)
+    work.save("points", est.points)
+    doc = {
+        "intrinsics": K,
+        "tracks": int(tracks.uv.shape[1]),
+        "observations_chained": chained_obs,
+        "observations": int(tracks.observed.sum()),
+        "reprojection_rms_px": est.rms,
+        "reprojection_median_px": est.median,
+        "reprojection_rms_initial_px": est.rms_before,
+        "inlier_fraction": est.inlier_fraction,
+        "ba_iterations": est.iterations,
+        "reference_frame": est.reference,
+    }
+    work.save_json("pose", doc)
+    return doc
+
+
+def _step_plate(work: _Work, bar: Bar) -> dict:
+    from .plate import background_plate
+
+    plate = background_plate(work.load("frames"), work.load("parsing"))
+    cv2.imwrite(str(work.folder / ".background.tmp.png"), cv2.cvtColor(plate.image, cv2.COLOR_RGB2BGR))
+    (work.folder / ".background.tmp.png").replace(work.folder / "background.png")
+    doc = {"filled_fraction": plate.filled_fraction}
+    work.save_json("plate", doc)
+    bar("plate", 1, 1)
+    return doc
+
+
+def _bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float) -> dict:
+    """Head box (canonical), torso box (camera), near/far and mouth point from the tracked head."""
+    fx, fy, cx, cy = K
+    z = poses[:, 2, 3]
+    zc = float(np.median(z))
+    # Vertical extent of the head around its centre, from the silhouettes (pixels -> units at the head's depth).
+    tops, bottoms = [], []
+    for i in np.linspace(0, len(labels) - 1, min(len(labels), 50)).round().astype(int):
+        rows = np.flatnonzero((labels[i] == LABEL_HEAD).any(1))
+        if len(rows):
+            v0 = fy * poses[i, 1, 3] / poses[i, 2, 3] + cy
+            tops.append((rows[0] - v0) * poses[i, 2, 3] / fy)
+            bottoms.append((rows[-1] + 1 - v0) * poses[i, 2, 3] / fy)
+    top = float(np.median(tops)) if tops else -0.65 * head_width
+    bottom = float(np.median(bottoms)) if bottoms else 0.65 * head_width
+    half = 0.6 * head_width
+    head_aabb = ((-half, top - 0.1 * head_width, -0.66 * head_width), (half, bottom + 0.15 * head_width, 0.66 * head_width))
+    torso = labels == LABEL_TORSO
+    ys, xs = np.nonzero(torso.any(0))
+    if len(xs):
+        x0, x1 = (xs.min() - cx) / fx * zc, (xs.max() + 1 - cx) / fx * zc
+        y0, y1 = (ys.min() - cy) / fy * zc, (ys.max() + 1 - cy) / fy * zc
+    else:  # head-only footage: a token torso box under the head
+        x0, x1, y0, y1 = -head_width, head_width, bottom, bottom + head_width
+    depth = 0.5 * (x1 - x0)
+    torso_aabb = ((x0 - 0.1 * head_width, y0 - 0.1 * head_width, zc - 0.5 * head_width), (x1 + 0.1 * head_width, y1 + 0.1 * head_width, zc + max(depth, head_width)))
+    near = max(1e-3, float(z.min()) - 1.2 * head_width)
+    far = float(z.max()) + max(depth, head_width) + 1.2 * head_width
+    mouth = (0.0, 0.55 * bottom, -0.51 * head_width)
+    return {"head_aabb": head_aabb, "torso_aabb": torso_aabb, "near": near, "far": far, "mouth": mouth}
+
+
+def _contact_sheet(frames: np.ndarray, labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, count: int = 4) -> np.ndarray:
+    """Sample frames with the parsing overlaid and the head's canonical axes drawn (x red, y green, z blue)."""
+    colours = np.array([[0, 0, 0], [255, 60, 60], [60, 200, 60]], np.uint8)
+    tiles = []
+    for i in np.linspace(0, len(frames) - 1, count).round().astype(int):
+        img = frames[i].copy()
+        over = labels[i] > 0
+        img[over] = (0.55 * img[over] + 0.45 * colours[labels[i][over]]).astype(np.uint8)
+        axes = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.6 * head_width
+        q = axes @ poses[i, :3, :3].T + poses[i, :3, 3]
+        uv = np.stack([K[0] * q[:, 0] / q[:, 2] + K[2], K[1] * q[:, 1] / q[:, 2] + K[3]], 1)
+        thick = max(1, img.shape[0] // 200)
+        for k, col in zip((1, 2, 3), ((255, 0, 0), (0, 255, 0), (0, 0, 255))):
+            cv2.line(img, tuple(np.round(uv[0]).astype(int)), tuple(np.round(uv[k]).astype(int)), col, thick, cv2.LINE_AA)
+        cv2.putText(img, f"{i}", (4, 14 + 2 * thick), cv2.FONT_HERSHEY_SIMPLEX, 0.4 * thick, (255, 255, 255), thick, cv2.LINE_AA)
+        tiles.append(img)
+    return np.concatenate(tiles, axis=1)
+
+
+def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, docs: dict, bar: Bar, overwrite: bool) -> Path:
+    info = work.load_json("decode")
+    frames, labels, poses = work.load("frames"), work.load("parsing"), work.load("poses")
+    features = work.load("features")
+    n = len(frames)
+    K = _intrinsics(config, info["width"], info["height"])
+    b = _bounds(labels, poses, K, config.head_width)
+    n_test = max(1, int(round(n * config.test_fraction)))
+    meta = SceneMeta(
+        fps=float(info["fps"]),
+        width=int(info["width"]),
+        height=int(info["height"]),
+        intrinsics=K,
+        near=b["near"],
+        far=b["far"],
+        head_aabb=b["head_aabb"],
+        torso_aabb=b["torso_aabb"],
+        mouth=b["mouth"],
+        feature_kind=config.features,
+        feature_dim=int(features.shape[-1]),
+        n_frames=n,
+        train=list(range(n - n_test)),
+        test=list(range(n - n_test, n)),
+        source=f"adnerf preprocess {video.name}: parser={config.parser} flow={config.flow} focal={K[0]:g}",
+    )
+    if info["audio"]:
+        audio = read_audio(work.folder / "audio.wav")
+    else:
+        audio = AudioTrack(np.zeros(int(16000 * info["seconds"]), np.float32), 16000, 0.0)
+    plate = cv2.cvtColor(cv2.imread(str(work.folder / "background.png")), cv2.COLOR_BGR2RGB)
+    report = {
+        "video": str(video),
+        "frames": n,
+        "width": info["width"],
+        "height": info["height"],
+        "fps": info["fps"],
+        "seconds": info["seconds"],
+        "config": asdict(config),
+        **{f"parse_{k}": v for k, v in docs["parse"].items()},
+        **{f"pose_{k}": v for k, v in docs["pose"].items()},
+        "plate_filled_fraction": docs["plate"]["filled_fraction"],
+        "bounds": b,
+        "timings_s": {s: work.record.get(s, {}).get("seconds") for s in STEPS if s != "write"},
+    }
+    sheet = _contact_sheet(frames, labels, poses, K, config.head_width)
+
+    def extra(folder: Path) -> None:
+        (folder / "preprocess_report.json").write_text(json.dumps(report, indent=1))
+        cv2.imwrite(str(folder / "preprocess_report.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+
+    save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, extra=extra, overwrite=overwrite)
+    bar("write", 1, 1)
+    return out
+
+
+def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfig = PreprocessConfig(), *, progress: Bar | None = None, overwrite: bool = False) -> dict:
+    """Turn a static-camera talking-head video into a dataset folder (see the module docstring).
+
+    Args:
+        video: The video file (with an audio track unless ``config.features == "none"``).
+        out: Dataset folder to create; must not exist unless ``overwrite``.
+        config: Settings.
+        progress: Called as ``progress(step, done, total)``.
+        overwrite: Replace an existing dataset folder.
+
+    Returns:
+        The report (also written as ``out/preprocess_report.json``), with per-step timings.
+
+    Raises:
+        PreprocessError: Bad settings or a video that cannot become a dataset.
+        adnerf.io.MediaError: The file is missing or unreadable.
+    """
+    config.validate()
+    video, out = Path(video), Path(out)
+    if not video.is_file():
+        raise MediaError(f"{video}: no such file")
+    if out.exists() and not overwrite:
+        raise PreprocessError(f"{out}: already exists (choose another folder, or --overwrite)")
+    bar = progress or (lambda step, done, total: None)
+    work = _Work(out.with_name(f".{out.name}.preprocess"), video, config)
+    docs: dict = {}
+    failed = True
+    try:
+        for step in STEPS[:-1]:
+            if work.done(step):
+                if step in ("parse", "pose", "plate"):
+                    docs[step] = work.load_json(step)
+                bar(f"{step} (done before)", 1, 1)
+                continue
+            t0 = time.perf_counter()
+            if step == "decode":
+                _step_decode(video, work, config, bar)
+            elif step == "features":
+                _step_features(work, config, bar)
+            elif step == "parse":
+                docs[step] = _step_parse(video, work, config, bar)
+            elif step == "pose":
+                docs[step] = _step_pose(work, config, bar)
+            elif step == "plate":
+                docs[step] = _step_plate(work, bar)
+            work.finish(step, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        _step_write(video, out, work, config, docs, bar, overwrite)
+        failed = False
+    except PreprocessError:
+        # Bad input: nothing worth resuming.
+        shutil.rmtree(work.folder, ignore_errors=True)
+        raise
+    finally:
+        if not failed:
+            shutil.rmtree(work.folder, ignore_errors=True)
+    report = json.loads((out / "preprocess_report.json").read_text())
+    report["timings_s"]["write"] = round(time.perf_counter() - t0, 3)
+    (out / "preprocess_report.json").write_text(json.dumps(report, indent=1))
+    return report
