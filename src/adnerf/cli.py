@@ -348,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
     pre = sub.add_parser("preprocess", help="turn a static-camera talking-head video into a dataset (parsing, head pose, plate)")
     pre.add_argument("video", help="video file with an audio track")
     pre.add_argument("-o", "--output", required=True, help="dataset folder to create")
-    pre.add_argument("--parser", default="classical", help="face parser: classical (default, no weights) or bisenet:CHECKPOINT")
+    pre.add_argument("--parser", default="classical", help="face parser: classical (default, needs no weights)")
     pre.add_argument("--features", choices=("logmel", "phonemes", "none"), default="logmel", help="audio features (none: silent dataset, allowed without audio)")
     pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
     pre.add_argument("--focal", type=float, default=None, help="focal length in pixels (default 1.33 x the larger frame side)")

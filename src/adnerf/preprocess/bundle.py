@@ -10,9 +10,11 @@ minimised with a Huber loss by Levenberg-Marquardt: iteratively reweighted Gauss
 the se(3) increments of the poses and the point increments, with analytic Jacobians and the
 points eliminated by the Schur complement, so the linear system has only ``6 (N - 1)`` unknowns.
 
-Gauge: the reference frame's pose is held fixed. That fixes the canonical frame (6 degrees of
-freedom) and the scale (all depths scale with the reference translation), so the problem has no
-null space left. Callers choose the reference pose (its depth sets the scene units).
+Gauge: the reference frame's pose is held fixed, which fixes the canonical frame (6 degrees of
+freedom). One more freedom remains: the whole scene scaled about the camera centre (points
+``s X + (s - 1) R_ref^T t_ref``, translations ``s t_i - (s - 1) R_i R_ref^T t_ref`` reproject
+identically). The shape prior fixes it; without the prior the damping keeps the scale near its
+initial value. Callers choose the reference pose (its depth sets the scene units).
 
 Pose update (a retraction of SE(3), exact to first order): ``R <- Exp(w) R``, ``t <- Exp(w) t + v``
 for the increment ``(v, w)``; the derivative of ``p = R X + t`` is ``[I, -[p]x]`` for ``(v, w)``

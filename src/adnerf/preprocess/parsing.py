@@ -5,12 +5,10 @@ A parser maps the whole clip ``(N, H, W, 3)`` uint8 RGB to label maps ``(N, H, W
 :mod:`adnerf.data`. Parsers see the whole clip, not one frame, because the camera is static and
 the background is the same in every frame: the default parser exploits exactly that.
 
-Backends (:func:`make_parser`):
-
-* ``"classical"`` (default, no weights): a temporal background model plus GrabCut per frame, then
-  the head/torso split at the neck (see :class:`ClassicalParser`).
-* ``"bisenet"``: a BiSeNet face-parsing network with the 19 CelebAMask-HQ classes, loaded from a
-  checkpoint the user supplies (``--parser bisenet:PATH``); see :mod:`adnerf.preprocess.bisenet`.
+Backends (:func:`make_parser`): ``"classical"`` (default, no weights), a temporal background model
+plus GrabCut per frame, then the head/torso split at the neck (see :class:`ClassicalParser`).
+Learned backends (BiSeNet with a user-supplied CelebAMask-HQ checkpoint, mediapipe) plug in behind
+the same :class:`Parser` protocol.
 """
 
 from __future__ import annotations
@@ -20,6 +18,7 @@ from typing import Callable, Protocol
 
 import cv2
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 
 from ..data import LABEL_HEAD, LABEL_TORSO
 
@@ -104,7 +103,7 @@ def split_head_torso(person: np.ndarray, min_rows: int = 4) -> tuple[np.ndarray,
         labels[person] = LABEL_TORSO
         return labels, None
     width = person.sum(1).astype(np.float64)
-    width = np.convolve(width, np.ones(3) / 3, mode="same")
+    width[rows[0] : rows[-1] + 1] = uniform_filter1d(width[rows[0] : rows[-1] + 1], 3, mode="nearest")
     top = rows[0]
     span = rows[-1] - top + 1
     # The head's widest row lies in the upper part of the silhouette; search down from it.
@@ -142,8 +141,8 @@ class ClassicalParser:
        with the models frozen.
     3. **Plate and pass 2**: a background plate is the per-pixel median of the frames where the
        pixel was background; where the plate is known, a frame's difference from it gives sure
-       person (> ``plate_high``) and sure background (< ``plate_low``) seeds, and GrabCut cuts
-       each frame again.
+       person (> ``plate_high``) and background (< ``plate_low``; only "probably" inside the hull)
+       seeds, and GrabCut cuts each frame again.
     4. **Head / torso**: the largest silhouette component is split at the neck
        (:func:`split_head_torso`).
 
@@ -233,23 +232,15 @@ def _has_both(mask: np.ndarray) -> bool:
     return bool(fg and bg)
 
 
-PARSERS = ("classical", "bisenet:PATH")
+PARSERS = ("classical",)
 
 
 def make_parser(spec: str) -> Parser:
-    """A parser by name: ``"classical"`` or ``"bisenet:/path/to/checkpoint.pth"``.
+    """A parser by name (``"classical"``).
 
     Raises:
-        ValueError: Unknown name or a BiSeNet spec without a checkpoint path.
+        ValueError: Unknown name.
     """
     if spec == "classical":
         return ClassicalParser()
-    if spec.startswith("bisenet"):
-        path = spec.partition(":")[2]
-        if not path:
-            raise ValueError("the bisenet parser needs a checkpoint: --parser bisenet:/path/to/79999_iter.pth")
-        from .bisenet import BiSeNetParser
-
-        return BiSeNetParser.from_checkpoint(path)
-    raise ValueError(f"unknown parser {spec!r}; choose one of {', '.join(PARSERS)}")
-
+    raise ValueError(f"unknown parser {spec!r}; available: {', '.join(PARSERS)}")

@@ -53,7 +53,7 @@ class PreprocessConfig:
     """Settings of :func:`preprocess_video`.
 
     Attributes:
-        parser: Parsing backend (``"classical"`` or ``"bisenet:PATH"``).
+        parser: Parsing backend (``"classical"``).
         features: Audio features: ``"logmel"``, ``"phonemes"`` or ``"none"`` (silent dataset).
         flow: Dense optical flow: ``"dis"`` or ``"deepflow"``.
         focal: Focal length in pixels; ``None`` assumes ``1.33 * max(width, height)`` (a 41 degree
@@ -461,7 +461,7 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
         t0 = time.perf_counter()
         _step_write(video, out, work, config, docs, bar, overwrite)
         failed = False
-    except PreprocessError:
+    except (PreprocessError, MediaError):
         # Bad input: nothing worth resuming.
         shutil.rmtree(work.folder, ignore_errors=True)
         raise
