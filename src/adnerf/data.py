@@ -173,6 +173,13 @@ class TalkingHeadDataset:
         return HeadPose.from_matrix(torch.as_tensor(self.poses[index], dtype=dtype, device=device))
 
 
+def tail_split(n_frames: int, test_fraction: float) -> tuple[list[int], list[int]]:
+    """Train and test frame indices: the last ``test_fraction`` of the clip (at least one frame)
+    is held out, so test frames are never neighbours of training frames except at one cut."""
+    n_test = max(1, int(round(n_frames * test_fraction)))
+    return list(range(n_frames - n_test)), list(range(n_frames - n_test, n_frames))
+
+
 def _write_png(path: Path, image: np.ndarray) -> None:
     img = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
     if not cv2.imwrite(str(path), img):

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from .data import LABEL_HEAD, LABEL_TORSO, SceneMeta, Truth, save_dataset
+from .data import LABEL_HEAD, LABEL_TORSO, SceneMeta, Truth, save_dataset, tail_split
 from .features import FeatureSpec, speech_windows
 from .io import AudioTrack, read_audio, write_video
 
@@ -469,7 +469,7 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
     audio = AudioTrack(samples, SAMPLE_RATE, 0.0)
     spec = FeatureSpec(kind=config.features)
     features = speech_windows(audio, times, spec)
-    n_test = max(1, int(round(n * config.test_fraction)))
+    train, test = tail_split(n, config.test_fraction)
     meta = SceneMeta(
         fps=float(config.fps),
         width=size,
@@ -483,8 +483,8 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
         feature_kind=config.features,
         feature_dim=int(features.shape[-1]),
         n_frames=n,
-        train=list(range(n - n_test)),
-        test=list(range(n - n_test, n)),
+        train=train,
+        test=test,
         source=f"adnerf synth: seconds={config.seconds} size={size} fps={config.fps} seed={config.seed} voice={voice}",
     )
 

@@ -191,18 +191,17 @@ def bundle_adjust(
         pr, pj = prior(points)
         Hpp = Hpp + pj[:, :, None] * pj[:, None, :]
         gp = gp + pj * pr[:, None]
-        Hcp_obs = wjc.transpose(1, 2) @ jp  # (M, 6, 3)
+        # W = Hcp (6F x 3P, dense over the free frames); the Schur complement is S = Hcc - W Hpp^-1 W^T.
+        W = torch.zeros(nf, 6, p, 3, dtype=R.dtype, device=R.device)
+        keep = free[frame]
+        W[col[frame[keep]], :, point[keep]] = (wjc.transpose(1, 2) @ jp)[keep]
+        Wm = W.reshape(6 * nf, 3 * p)
+        Hcc_f = Hcc[free]
         improved = False
         while lam < 1e10:
             Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=-2, dim2=-1).clamp_min(1e-9))
             Hpp_inv = torch.linalg.inv(Hpp_d)
-            # W = Hcp (6F x 3P dense over free frames), S = Hcc - W Hpp^-1 W^T.
-            W = torch.zeros(nf, 6, p, 3, dtype=R.dtype, device=R.device)
-            keep = free[frame]
-            W[col[frame[keep]], :, point[keep]] = Hcp_obs[keep]
-            Wm = W.reshape(6 * nf, 3 * p)
             WH = torch.einsum("apk,pkl->apl", W.reshape(6 * nf, p, 3), Hpp_inv).reshape(6 * nf, 3 * p)
-            Hcc_f = Hcc[free]
             Hcc_d = Hcc_f + lam * torch.diag_embed(torch.diagonal(Hcc_f, dim1=-2, dim2=-1).clamp_min(1e-9))
             S = torch.block_diag(*Hcc_d) - WH @ Wm.T
             rhs = -gc[free].reshape(-1) + WH @ gp.reshape(-1)

@@ -35,7 +35,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset, write_wav
+from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset, tail_split, write_wav
 from ..io import AudioTrack, MediaError, read_audio, read_video
 
 __all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "STEPS"]
@@ -175,13 +175,9 @@ def _camera_motion(frames: np.ndarray, labels: np.ndarray, pairs: int = 8, gap: 
     return float(np.median(out)) if out else 0.0
 
 
-def _interpolate_missing(values: np.ndarray, good: np.ndarray) -> np.ndarray:
-    """Linear interpolation over time of rows where ``good`` is False (ends held)."""
-    out = values.copy()
-    idx = np.flatnonzero(good)
-    for k in range(values.shape[1]):
-        out[~good, k] = np.interp(np.flatnonzero(~good), idx, values[idx, k])
-    return out
+def _pixels(points: np.ndarray, K: tuple[float, float, float, float]) -> np.ndarray:
+    """Pixel positions ``(n, 2)`` (centre convention) of camera-frame points ``(n, 3)``."""
+    return np.stack([K[0] * points[:, 0] / points[:, 2] + K[2], K[1] * points[:, 1] / points[:, 2] + K[3]], 1)
 
 
 def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> None:
@@ -270,8 +266,7 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
         P, X = est.poses, est.points
 
         def predict(i: int, idx: np.ndarray) -> np.ndarray:
-            q = X[idx] @ P[i, :3, :3].T + P[i, :3, 3]
-            return np.stack([K[0] * q[:, 0] / q[:, 2] + K[2], K[1] * q[:, 1] / q[:, 2] + K[3]], 1)
+            return _pixels(X[idx] @ P[i, :3, :3].T + P[i, :3, 3], K)
 
         tracks = extend_tracks(frames, labels, tracks, predict, track_cfg, reach=len(frames))
         est = estimate_head_poses(tracks, labels, K, **kw, smooth_sigma=config.smooth_sigma if k == config.extend_passes - 1 else 0.0)
@@ -347,8 +342,7 @@ def _contact_sheet(frames: np.ndarray, labels: np.ndarray, poses: np.ndarray, K:
         over = labels[i] > 0
         img[over] = (0.55 * img[over] + 0.45 * colours[labels[i][over]]).astype(np.uint8)
         axes = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.6 * head_width
-        q = axes @ poses[i, :3, :3].T + poses[i, :3, 3]
-        uv = np.stack([K[0] * q[:, 0] / q[:, 2] + K[2], K[1] * q[:, 1] / q[:, 2] + K[3]], 1)
+        uv = _pixels(axes @ poses[i, :3, :3].T + poses[i, :3, 3], K)
         thick = max(1, img.shape[0] // 200)
         for k, col in zip((1, 2, 3), ((255, 0, 0), (0, 255, 0), (0, 0, 255))):
             cv2.line(img, tuple(np.round(uv[0]).astype(int)), tuple(np.round(uv[k]).astype(int)), col, thick, cv2.LINE_AA)
@@ -357,14 +351,15 @@ def _contact_sheet(frames: np.ndarray, labels: np.ndarray, poses: np.ndarray, K:
     return np.concatenate(tiles, axis=1)
 
 
-def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, docs: dict, bar: Bar, overwrite: bool) -> Path:
+def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, docs: dict, bar: Bar, overwrite: bool) -> dict:
+    t0 = time.perf_counter()
     info = work.load_json("decode")
     frames, labels, poses = work.load("frames"), work.load("parsing"), work.load("poses")
     features = work.load("features")
     n = len(frames)
     K = _intrinsics(config, info["width"], info["height"])
     b = _bounds(labels, poses, K, config.head_width)
-    n_test = max(1, int(round(n * config.test_fraction)))
+    train, test = tail_split(n, config.test_fraction)
     meta = SceneMeta(
         fps=float(info["fps"]),
         width=int(info["width"]),
@@ -378,8 +373,8 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         feature_kind=config.features,
         feature_dim=int(features.shape[-1]),
         n_frames=n,
-        train=list(range(n - n_test)),
-        test=list(range(n - n_test, n)),
+        train=train,
+        test=test,
         source=f"adnerf preprocess {video.name}: parser={config.parser} flow={config.flow} focal={K[0]:g}",
     )
     if info["audio"]:
@@ -404,12 +399,13 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
     sheet = _contact_sheet(frames, labels, poses, K, config.head_width)
 
     def extra(folder: Path) -> None:
+        report["timings_s"]["write"] = round(time.perf_counter() - t0, 3)  # all but the final rename
         (folder / "preprocess_report.json").write_text(json.dumps(report, indent=1))
         cv2.imwrite(str(folder / "preprocess_report.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
     save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, extra=extra, overwrite=overwrite)
     bar("write", 1, 1)
-    return out
+    return report
 
 
 def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfig = PreprocessConfig(), *, progress: Bar | None = None, overwrite: bool = False) -> dict:
@@ -458,8 +454,7 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
             elif step == "plate":
                 docs[step] = _step_plate(work, bar)
             work.finish(step, time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        _step_write(video, out, work, config, docs, bar, overwrite)
+        report = _step_write(video, out, work, config, docs, bar, overwrite)
         failed = False
     except (PreprocessError, MediaError):
         # Bad input: nothing worth resuming.
@@ -468,7 +463,4 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
     finally:
         if not failed:
             shutil.rmtree(work.folder, ignore_errors=True)
-    report = json.loads((out / "preprocess_report.json").read_text())
-    report["timings_s"]["write"] = round(time.perf_counter() - t0, 3)
-    (out / "preprocess_report.json").write_text(json.dumps(report, indent=1))
     return report

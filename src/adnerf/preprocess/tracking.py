@@ -20,11 +20,10 @@ from typing import Callable
 
 import cv2
 import numpy as np
-import torch
 
 from ..data import LABEL_HEAD
 
-__all__ = ["FLOWS", "TrackConfig", "Tracks", "dense_flow", "rigid_region", "track_points", "flow_warp_error"]
+__all__ = ["FLOWS", "TrackConfig", "Tracks", "dense_flow", "rigid_region", "track_points", "extend_tracks"]
 
 FLOWS = ("dis", "deepflow")
 
@@ -233,24 +232,6 @@ def _anchor(gray: list[np.ndarray], paths: list, alive: list[int], nxt: np.ndarr
         nxt[sel[good]] = got[good]
         ok[sel[~good]] = False
     return nxt, ok
-
-
-def flow_warp_error(frame0: np.ndarray, frame1: np.ndarray, flow: np.ndarray, region: np.ndarray) -> float:
-    """Mean absolute photometric error (grey levels in [0, 1]) of ``frame1`` warped back by ``flow``.
-
-    ``frame1`` is resampled at ``p + flow(p)`` with kornia's ``remap`` and compared with ``frame0``
-    inside ``region``: a measure of how well the flow explains the motion there.
-    """
-    from kornia.geometry.transform import remap
-
-    h, w = flow.shape[:2]
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
-    img = torch.from_numpy(cv2.cvtColor(frame1, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0)[None, None]
-    mx = torch.from_numpy(xs + flow[..., 0])[None]
-    my = torch.from_numpy(ys + flow[..., 1])[None]
-    warped = remap(img, mx, my, mode="bilinear", padding_mode="border", align_corners=True)[0, 0].numpy()
-    ref = cv2.cvtColor(frame0, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
-    return float(np.abs(warped - ref)[region].mean()) if region.any() else float("nan")
 
 
 def extend_tracks(
