@@ -206,3 +206,91 @@ def test_astronaut_in_plane_motion_is_recovered() -> None:
     pred = np.stack([(a @ np.linalg.inv(A[0]) @ c0)[:2] + 0.5 for a in A])
     assert np.abs(proj - pred).max() < 1.0
     assert math.isfinite(est.rms) and est.rms < 0.5
+
+
+# ----------------------------------------------------------------------------- import-adnerf
+
+
+def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 0) -> Path:
+    """Write the synthetic scene as the original AD-NeRF preprocessing would leave it."""
+    from adnerf.data import load_dataset
+    from adnerf.preprocess.adnerf_import import ours_pose_to_adnerf
+
+    ds = load_dataset(scene, truth=True)
+    meta = ds.meta
+    (root / "ori_imgs").mkdir(parents=True)
+    (root / "parsing").mkdir()
+    bgr_colours = np.array([[255, 255, 255], [255, 0, 0], [0, 0, 255]], np.uint8)  # background, head, clothes
+    for k in range(meta.n_frames):
+        cv2.imwrite(str(root / "ori_imgs" / f"{k + first_id}.jpg"), cv2.cvtColor(ds.frames[k], cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 98])
+        cv2.imwrite(str(root / "parsing" / f"{k + first_id}.png"), bgr_colours[ds.truth.parsing[k]])
+    cv2.imwrite(str(root / "bc.jpg"), cv2.cvtColor(ds.background, cv2.COLOR_RGB2BGR))
+    poses = ds.truth.poses.copy()
+    poses[:, :3, 3] *= units
+    M = ours_pose_to_adnerf(poses)
+    fx, fy, cx, cy = meta.intrinsics
+    rng = np.random.default_rng(0)
+    np.save(root / "aud.npy", rng.normal(size=(meta.n_frames + first_id, 16, 29)).astype(np.float32))
+    for name, idx in (("train", meta.train), ("val", meta.test)):
+        doc = {"focal_len": fx, "cx": cx - 0.5, "cy": cy - 0.5, "frames": [{"img_id": k + first_id, "aud_id": k + first_id, "transform_matrix": M[k].tolist(), "face_rect": [0, 0, 10, 10]} for k in idx]}
+        (root / f"transforms_{name}.json").write_text(json.dumps(doc))
+    from adnerf.data import write_wav
+
+    write_wav(root / "aud.wav", ds.audio)
+    return root
+
+
+def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from adnerf.data import load_dataset
+
+    src = _adnerf_folder(scene, tmp_path / "obama")
+    out = tmp_path / "imported"
+    assert main(["import-adnerf", str(src), "-o", str(out)]) == 0
+    assert "frames" in capsys.readouterr().out
+    truth = load_dataset(scene, truth=True)
+    ds = load_dataset(out)
+    assert ds.meta.feature_kind == "deepspeech" and ds.features.shape == (truth.meta.n_frames, 16, 29)
+    np.testing.assert_array_equal(ds.features, np.load(src / "aud.npy"))
+    assert ds.meta.train == truth.meta.train and ds.meta.test == truth.meta.test
+    np.testing.assert_array_equal(ds.parsing, truth.truth.parsing)
+    np.testing.assert_allclose(ds.meta.intrinsics, truth.meta.intrinsics)
+    # Rotations exactly; translations up to the one scale that makes the head 1.6 units wide.
+    np.testing.assert_allclose(ds.poses[:, :3, :3], truth.truth.poses[:, :3, :3], atol=1e-9)
+    scale = ds.poses[:, :3, 3] / truth.truth.poses[:, :3, 3]
+    np.testing.assert_allclose(scale, scale.flat[0], rtol=1e-6)
+    assert 0.7 < scale.flat[0] < 1.3, scale.flat[0]
+    # The widened head box holds the true head box; the frames survive the JPEG round trip.
+    lo, hi = np.array(ds.meta.head_aabb) / scale.flat[0]
+    t_lo, t_hi = np.array(truth.meta.head_aabb)
+    assert (lo[[0, 2]] <= t_lo[[0, 2]]).all() and (hi[[0, 2]] >= t_hi[[0, 2]]).all()
+    assert np.abs(ds.frames.astype(int) - truth.frames.astype(int)).mean() < 3.0
+    assert abs(ds.audio.duration - truth.audio.duration) < 0.05
+
+
+def test_import_adnerf_trims_audio_to_the_first_frame_and_reports_bad_folders(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from adnerf.data import load_dataset
+    from adnerf.preprocess.adnerf_import import import_adnerf
+
+    src = _adnerf_folder(scene, tmp_path / "late", first_id=5)
+    import_adnerf(src, tmp_path / "late_out")
+    ds = load_dataset(tmp_path / "late_out")
+    full = load_dataset(scene).audio
+    assert abs((full.duration - ds.audio.duration) - 5 / 25.0) < 1e-3
+    np.testing.assert_array_equal(ds.features, np.load(src / "aud.npy")[5:])
+
+    (src / "aud.npy").unlink()
+    assert main(["import-adnerf", str(src), "-o", str(tmp_path / "x")]) == 2
+    assert "aud.npy" in capsys.readouterr().err
+    assert main(["import-adnerf", str(tmp_path / "missing"), "-o", str(tmp_path / "y")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+    (src / "transforms_train.json").write_text("{}")
+    assert main(["import-adnerf", str(src), "-o", str(tmp_path / "z")]) == 2
+    assert "not an AD-NeRF transforms file" in capsys.readouterr().err
+    assert not any((tmp_path / n).exists() for n in ("x", "y", "z"))
+
+
+def test_adnerf_parsing_colours() -> None:
+    from adnerf.preprocess.adnerf_import import parse_adnerf_parsing
+
+    bgr = np.array([[[255, 255, 255], [255, 0, 0], [0, 255, 0], [0, 0, 255], [250, 3, 5], [251, 252, 249]]], np.uint8)
+    np.testing.assert_array_equal(parse_adnerf_parsing(bgr), [[0, LABEL_HEAD, LABEL_TORSO, LABEL_TORSO, LABEL_HEAD, 0]])

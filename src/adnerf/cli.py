@@ -230,6 +230,31 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_import_adnerf(args: argparse.Namespace) -> int:
+    import warnings
+
+    from tqdm import tqdm
+
+    from .preprocess.adnerf_import import import_adnerf
+
+    with tqdm(desc="import frames", unit="frame") as bar, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+
+        def tick(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        summary = import_adnerf(args.source, args.output, fps=args.fps, audio=args.audio, overwrite=args.overwrite, progress=tick)
+    for w in caught:
+        print(f"adnerf: warning: {w.message}", file=sys.stderr)
+    print(
+        f"{summary['dataset']}: {summary['frames']} frames ({summary['train']} train, {summary['test']} test), "
+        f"{summary['size'][0]}x{summary['size'][1]}, DeepSpeech features {tuple(summary['features'])}, poses rescaled by {summary['scale']:.4g}; "
+        f"train with `adnerf train {summary['dataset']} -o RUN`"
+    )
+    return 0
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -255,6 +280,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
             pitch=args.pitch,
             roll=args.roll,
             background=args.background,
+            features=args.features,
             frames_dir=args.frames,
             progress=tick,
         )
@@ -348,13 +374,21 @@ def build_parser() -> argparse.ArgumentParser:
     pre = sub.add_parser("preprocess", help="turn a static-camera talking-head video into a dataset (parsing, head pose, plate)")
     pre.add_argument("video", help="video file with an audio track")
     pre.add_argument("-o", "--output", required=True, help="dataset folder to create")
-    pre.add_argument("--parser", default="classical", help="face parser: classical (default, needs no weights)")
+    pre.add_argument("--parser", default="classical", help="face parser: classical (default, needs no weights) or bisenet:CHECKPOINT (your 19-class face-parsing BiSeNet .pth, e.g. the 79999_iter.pth AD-NeRF uses)")
     pre.add_argument("--features", choices=("logmel", "phonemes", "none"), default="logmel", help="audio features (none: silent dataset, allowed without audio)")
     pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
     pre.add_argument("--focal", type=float, default=None, help="focal length in pixels (default 1.33 x the larger frame side)")
     pre.add_argument("--test-fraction", type=float, default=0.1, help="fraction of frames at the end held out for testing")
     pre.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     pre.set_defaults(func=_cmd_preprocess)
+
+    imp = sub.add_parser("import-adnerf", help="convert a dataset preprocessed by the original AD-NeRF code into an adnerf dataset")
+    imp.add_argument("source", help="AD-NeRF dataset folder (transforms_train.json, ori_imgs/, parsing/, bc.jpg, aud.npy, aud.wav)")
+    imp.add_argument("-o", "--output", required=True, help="dataset folder to create")
+    imp.add_argument("--fps", type=float, default=25.0, help="frame rate of the original video (default 25, as AD-NeRF assumes)")
+    imp.add_argument("--audio", default=None, help="the original audio (default SOURCE/aud.wav)")
+    imp.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    imp.set_defaults(func=_cmd_import_adnerf)
 
     chk = sub.add_parser("check-preprocess", help="compare a preprocessed synthetic video with the scene's truth (pose, parsing, plate)")
     chk.add_argument("dataset", help="dataset written by adnerf preprocess from SYNTH/video.mp4")
@@ -382,6 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--yaw", type=float, default=0.0, help="degrees added about the head's vertical axis")
     rn.add_argument("--pitch", type=float, default=0.0, help="degrees added about the horizontal axis")
     rn.add_argument("--roll", type=float, default=0.0, help="degrees added about the viewing axis")
+    rn.add_argument("--features", default=None, help=".npy of precomputed feature windows (M, 16, D) for the audio, one per frame (e.g. AD-NeRF's DeepSpeech aud.npy); required for runs trained on imported DeepSpeech features")
     rn.add_argument("--background", default=None, help="replacement background image")
     rn.add_argument("--frames", default=None, help="also write the frames as PNGs into this folder")
     rn.add_argument("--device", default="cpu", help="cpu or cuda")

@@ -61,6 +61,10 @@ class FeatureError(RuntimeError):
     """A feature extractor cannot run (missing package or model); the message says what to do."""
 
 
+#: The extractors adnerf computes itself (datasets may also carry imported ``"deepspeech"`` windows).
+FEATURE_KINDS = ("phonemes", "logmel", "wav2vec2")
+
+
 @dataclass(frozen=True)
 class FeatureSpec:
     """Which extractor and its settings (part of the cache key).

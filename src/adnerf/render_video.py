@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from .data import SceneMeta
-from .features import FeatureSpec, speech_windows
+from .features import FEATURE_KINDS, FeatureSpec, load_npy_windows, speech_windows
 from .io import AudioTrack, MediaError, read_audio, write_video
 from .pose import HeadPose
 from .talking_head import FrameRender, render_frame
@@ -182,10 +182,16 @@ def render_audio_video(
     pitch: float = 0.0,
     roll: float = 0.0,
     background: str | Path | None = None,
+    features: str | Path | None = None,
     frames_dir: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Render the run saying the audio of ``audio_path`` and write an mp4 with that audio.
+
+    The audio's feature windows are computed with the run's extractor, or read from ``features``
+    (an ``.npy`` of ``(M, 16, D)`` windows, one per frame at the run's fps; needed for runs whose
+    features cannot be computed here, such as DeepSpeech features imported from AD-NeRF). Then
+    the clip has ``min(M, frames of audio)`` frames.
 
     Returns:
         A summary: frames, seconds of audio, render wall time and frames per second, output path.
@@ -198,7 +204,23 @@ def render_audio_video(
     except MediaError as exc:
         raise RenderError(str(exc)) from exc
     meta = run.meta
-    windows = audio_frames(audio, meta["fps"], meta["feature_kind"], str(audio_path))
+    if features is not None:
+        try:
+            windows = load_npy_windows(features)
+        except MediaError as exc:
+            raise RenderError(str(exc)) from exc
+        if windows.shape[2] != meta["feature_dim"] or not np.isfinite(windows).all():
+            raise RenderError(f"{features}: this run needs finite windows of shape (M, 16, {meta['feature_dim']}); got {windows.shape}")
+        windows = windows[: max(1, int(math.floor(audio.duration * meta["fps"])))]
+    elif meta["feature_kind"] == "none":
+        raise RenderError("this run was trained on a silent dataset (--features none); it has no audio pathway to drive")
+    elif meta["feature_kind"] not in FEATURE_KINDS:
+        raise RenderError(
+            f"this run was trained on {meta['feature_kind']!r} features, which adnerf cannot compute; "
+            "give the windows of the new audio with --features FILE.npy (for AD-NeRF's DeepSpeech: the aud.npy its extractor writes)"
+        )
+    else:
+        windows = audio_frames(audio, meta["fps"], meta["feature_kind"], str(audio_path))
     n = len(windows)
     if poses_file is not None:
         poses = load_poses(poses_file, n)

@@ -232,15 +232,22 @@ def _has_both(mask: np.ndarray) -> bool:
     return bool(fg and bg)
 
 
-PARSERS = ("classical",)
+PARSERS = ("classical", "bisenet:CHECKPOINT")
 
 
 def make_parser(spec: str) -> Parser:
-    """A parser by name (``"classical"``).
+    """A parser by name: ``"classical"`` (no weights) or ``"bisenet:PATH"`` (a user's 19-class
+    face-parsing checkpoint, see :mod:`adnerf.preprocess.bisenet`; on CUDA when available).
 
     Raises:
-        ValueError: Unknown name.
+        ValueError: Unknown name, or a checkpoint that cannot be loaded.
     """
     if spec == "classical":
         return ClassicalParser()
+    if spec.startswith("bisenet:"):
+        import torch
+
+        from .bisenet import BiSeNetParser
+
+        return BiSeNetParser(spec.split(":", 1)[1], device="cuda" if torch.cuda.is_available() else "cpu")
     raise ValueError(f"unknown parser {spec!r}; available: {', '.join(PARSERS)}")

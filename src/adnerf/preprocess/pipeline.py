@@ -53,7 +53,8 @@ class PreprocessConfig:
     """Settings of :func:`preprocess_video`.
 
     Attributes:
-        parser: Parsing backend (``"classical"``).
+        parser: Parsing backend: ``"classical"`` (no weights) or ``"bisenet:PATH"`` (a user's
+            CelebAMask-HQ BiSeNet checkpoint; :mod:`adnerf.preprocess.bisenet`).
         features: Audio features: ``"logmel"``, ``"phonemes"`` or ``"none"`` (silent dataset).
         flow: Dense optical flow: ``"dis"`` or ``"deepflow"``.
         focal: Focal length in pixels; ``None`` assumes ``1.33 * max(width, height)`` (a 41 degree
@@ -86,6 +87,10 @@ class PreprocessConfig:
             raise PreprocessError(f"--features must be one of {', '.join(FEATURE_CHOICES)}; got {self.features!r}")
         if self.flow not in ("dis", "deepflow"):
             raise PreprocessError(f"--flow must be dis or deepflow; got {self.flow!r}")
+        if self.parser != "classical" and not self.parser.startswith("bisenet:"):
+            raise PreprocessError(f"--parser must be classical or bisenet:CHECKPOINT; got {self.parser!r}")
+        if self.parser.startswith("bisenet:") and not Path(self.parser.split(":", 1)[1]).is_file():
+            raise PreprocessError(f"--parser {self.parser}: no checkpoint file there (adnerf downloads no weights; give your 19-class face-parsing BiSeNet .pth)")
         if self.focal is not None and not self.focal > 0:
             raise PreprocessError(f"--focal must be positive; got {self.focal}")
         if not 0.0 < self.test_fraction < 0.5:
