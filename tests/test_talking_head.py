@@ -174,3 +174,24 @@ def test_pose_helpers(tmp_path: Path) -> None:
     np.save(tmp_path / "bad.npy", np.zeros((2, 3)))
     with pytest.raises(RenderError, match="shape"):
         load_poses(tmp_path / "bad.npy", 2)
+
+
+def test_render_takes_precomputed_feature_windows(tiny: Path, tiny_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    windows = np.load(tiny / "features.npy")[:10]
+    feats = tmp_path / "aud.npy"
+    np.save(feats, windows)
+    out = tmp_path / "f.mp4"
+    assert main(["render", str(tiny_run), "--audio", str(tiny / "audio.wav"), "--features", str(feats), "-o", str(out)]) == 0
+    assert len(read_video(out).frames) == 10
+    np.save(feats, windows[:, :, :3])
+    assert main(["render", str(tiny_run), "--audio", str(tiny / "audio.wav"), "--features", str(feats), "-o", str(tmp_path / "g.mp4")]) == 2
+    assert "shape (M, 16," in capsys.readouterr().err
+    # A run trained on imported DeepSpeech windows cannot compute them for new audio: it says so.
+    ds_run = tmp_path / "ds_run"
+    shutil.copytree(tiny_run, ds_run)
+    doc = json.loads((ds_run / "run.json").read_text())
+    doc["meta"]["feature_kind"] = "deepspeech"
+    (ds_run / "run.json").write_text(json.dumps(doc))
+    assert main(["render", str(ds_run), "--audio", str(tiny / "audio.wav"), "-o", str(tmp_path / "h.mp4")]) == 2
+    assert "--features" in capsys.readouterr().err
+    assert not (tmp_path / "g.mp4").exists() and not (tmp_path / "h.mp4").exists()
