@@ -155,7 +155,9 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
     head_fine = FieldConfig.from_dict({**head.to_dict(), "grid_max_resolution": 256, "grid_levels": 4})
     torso = fast_config(torso_cond, *meta.torso_aabb)
     torso_coarse = FieldConfig.from_dict({**torso.to_dict(), "grid_max_resolution": 64, "width": 32})
-    torso_fine = FieldConfig.from_dict({**torso.to_dict(), "grid_max_resolution": 256})
+    # A 128 rather than 256 finest torso grid: held-out torso 24.1 -> 24.8 dB after 4500 iterations
+    # on the demo scene at the same speed (512: 23.1 dB at 2500 iterations, 40% slower).
+    torso_fine = FieldConfig.from_dict({**torso.to_dict(), "grid_max_resolution": 128})
     return ModelConfig(
         feature_dim=meta.feature_dim,
         head=head_coarse,
