@@ -81,14 +81,10 @@ def adnerf_pose_to_ours(transform: np.ndarray) -> np.ndarray:
 
 
 def ours_pose_to_adnerf(pose: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`adnerf_pose_to_ours`: our head poses ``(..., 4, 4)`` -> AD-NeRF camera-to-head matrices."""
-    P = np.asarray(pose, dtype=np.float64)
-    Rt = np.swapaxes(P[..., :3, :3], -1, -2)
-    out = np.zeros(P.shape[:-2] + (4, 4))
-    out[..., :3, :3] = FLIP @ Rt @ FLIP
-    out[..., :3, 3] = -np.einsum("ij,...jk,...k->...i", FLIP, Rt, P[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
+    """Inverse of :func:`adnerf_pose_to_ours`: our head poses ``(..., 4, 4)`` -> AD-NeRF camera-to-head
+    matrices. The conversion is its own inverse (``F R^T F`` and ``-F R^T t`` map back the same
+    way), so this is the same map; the name says which way the data goes."""
+    return adnerf_pose_to_ours(pose)
 
 
 def parse_adnerf_parsing(bgr: np.ndarray) -> np.ndarray:
