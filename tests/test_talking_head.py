@@ -195,3 +195,26 @@ def test_render_takes_precomputed_feature_windows(tiny: Path, tiny_run: Path, tm
     assert main(["render", str(ds_run), "--audio", str(tiny / "audio.wav"), "-o", str(tmp_path / "h.mp4")]) == 2
     assert "--features" in capsys.readouterr().err
     assert not (tmp_path / "g.mp4").exists() and not (tmp_path / "h.mp4").exists()
+
+
+def test_stage_two_backgrounds_are_the_head_render_where_torso_rays_are_drawn(tiny: Path, tiny_run: Path, tmp_path: Path) -> None:
+    from adnerf.talking_head import render_frame, torso_bounds
+    from adnerf.train import _Trainer
+
+    run = load_run(tiny_run)
+    ds = load_dataset(tiny)
+    tr = _Trainer(tmp_path, ds, run.model.config, run.train_config, "cpu", progress=False)
+    tr.model.load_state_dict(run.model.state_dict())
+    tr.head_step = run.train_config.head_iters
+    near, far = torso_bounds(tr.model.config, tr.rays.origins)(tr.rays)
+    in_box = far > near
+    assert 0 < in_box.float().mean() < 1
+    out = tr.head_renders(in_box)
+    codes = tr.model.all_codes(tr.windows, tr.smooth_audio)
+    plate = tr.plate.reshape(ds.meta.height, ds.meta.width, 3)
+    for f in ds.meta.train[:: max(1, len(ds.meta.train) // 4)]:
+        ref = render_frame(tr.model, tr.camera, ds.head_pose(f), codes[f], plate, torso=False).head_on_plate.reshape(-1, 3)
+        need = in_box | tr.is_torso[f]
+        torch.testing.assert_close(out[f, need], ref[need], rtol=0, atol=0)
+        torch.testing.assert_close(out[f, ~need], tr.plate[~need], rtol=0, atol=0)
+    assert (tmp_path / "head_renders.pt").exists()

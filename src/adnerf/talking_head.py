@@ -408,6 +408,42 @@ def _render_hits(model: TalkingHead, part: Part, rays: RayBundle, pose: HeadPose
 
 
 @torch.no_grad()
+def render_head_on_plate(
+    model: TalkingHead,
+    rays: RayBundle,
+    pose: HeadPose,
+    code: Tensor,
+    plate: Tensor,
+    *,
+    chunk: int = 1024,
+    amp: str = "auto",
+) -> Tensor:
+    """The head layer over the plate along some rays (no gradients): ``head + (1 - a_head) plate``.
+
+    The same values as :func:`render_frame`'s ``head_on_plate`` at those pixels, for callers that
+    need only part of a frame (stage 2 needs the head only where torso rays are drawn).
+
+    Args:
+        model: The trained model.
+        rays: Camera rays ``(R,)``.
+        pose: The frame's head pose.
+        code: The frame's audio code ``(audio_dim,)``.
+        plate: Plate colours of those pixels ``(R, 3)`` in ``[0, 1]``.
+        chunk: Rays per batch.
+        amp: Mixed precision of the fields (see :func:`mixed_precision`).
+
+    Returns:
+        ``(R, 3)`` float32 colours.
+    """
+    out = plate.to(torch.float32).clone()
+    with mixed_precision(out.device, amp):
+        hit, comp = _render_hits(model, "head", rays, pose, code, chunk)
+    if comp is not None:
+        out[hit] = comp.rgb.to(out) + (1 - comp.opacity.to(out))[:, None] * out[hit]
+    return out
+
+
+@torch.no_grad()
 def render_frame(
     model: TalkingHead,
     camera: Camera,

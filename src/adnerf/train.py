@@ -44,7 +44,7 @@ from .talking_head import (
     layer_bounds,
     mixed_precision,
     model_config,
-    render_frame,
+    render_head_on_plate,
     render_part,
     torso_bounds,
     update_occupancy,
@@ -396,8 +396,13 @@ class _Trainer:
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
     @torch.no_grad()
-    def head_renders(self) -> torch.Tensor:
-        """Stage-1 renders over the plate of every frame ``(N, H*W, 3)``, cached in the run folder."""
+    def head_renders(self, in_box: torch.Tensor) -> torch.Tensor:
+        """Stage-1 renders over the plate of every frame ``(N, H*W, 3)``, cached in the run folder.
+
+        Only the pixels stage 2 draws rays at (``in_box (H*W,)``: rays that cross the torso box,
+        and the frame's torso pixels) are rendered; the others hold the plate, which stage 2 never
+        reads.
+        """
         path = self.root / "head_renders.pt"
         if path.exists():
             cached = torch.load(path, map_location=self.device, weights_only=False)
@@ -405,11 +410,11 @@ class _Trainer:
                 return cached["renders"].float()
         self.model.eval()
         codes = self.model.all_codes(self.windows, self.smooth_audio)
-        plate = self.plate.reshape(self.camera.height, self.camera.width, 3)
-        out = torch.zeros_like(self.frames)
+        out = self.plate.expand_as(self.frames).clone()
         for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
-            r = render_frame(self.model, self.camera, self.ds.head_pose(frame, device=self.device), codes[frame], plate, torso=False, amp=self.tcfg.amp)
-            out[frame] = r.head_on_plate.reshape(-1, 3)
+            pix = torch.nonzero(in_box | self.is_torso[frame])[:, 0]
+            pose = self.ds.head_pose(frame, device=self.device)
+            out[frame, pix] = render_head_on_plate(self.model, self.rays[pix], pose, codes[frame], self.plate[pix], amp=self.tcfg.amp)
         _save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
         return out
 
@@ -417,10 +422,10 @@ class _Trainer:
         tcfg = self.tcfg
         if self.head_step < tcfg.head_iters:
             raise RunError(f"stage 2 needs a finished stage 1 ({self.head_step}/{tcfg.head_iters} head iterations); run --stage head first")
-        backgrounds = self.head_renders()
+        near, far = torso_bounds(self.model.config, self.rays.origins)(self.rays)
+        backgrounds = self.head_renders(far > near)
         with torch.no_grad():
             codes = self.model.all_codes(self.windows, self.smooth_audio)
-        near, far = torso_bounds(self.model.config, self.rays.origins)(self.rays)
         candidates = torch.nonzero(far > near)[:, 0]
         sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
         self.model.train()
