@@ -50,7 +50,7 @@ import numpy as np
 from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
 from ..features import load_npy_windows
 from ..io import AudioTrack, MediaError, read_audio
-from .pipeline import PreprocessError, _bounds
+from .pipeline import PreprocessError, scene_bounds
 
 __all__ = ["adnerf_pose_to_ours", "import_adnerf", "ours_pose_to_adnerf", "parse_adnerf_parsing"]
 
@@ -230,7 +230,7 @@ def import_adnerf(
     scale = _scale_to_head_width(labels, poses, focal, head_width)
     poses[:, :3, 3] *= scale
     K = (focal, focal, cx, cy)
-    b = _bounds(labels, poses, K, head_width)
+    b = scene_bounds(labels, poses, K, head_width)
     # AD-NeRF's head origin is the face model's, not the middle of the head: widen the box across and in depth.
     (x0, y0, z0), (x1, y1, z1) = b["head_aabb"]
     b["head_aabb"] = ((x0 - 0.15 * head_width, y0, z0 - 0.3 * head_width), (x1 + 0.15 * head_width, y1, z1 + 0.3 * head_width))
@@ -243,11 +243,7 @@ def import_adnerf(
         width=W,
         height=H,
         intrinsics=K,
-        near=b["near"],
-        far=b["far"],
-        head_aabb=b["head_aabb"],
-        torso_aabb=b["torso_aabb"],
-        mouth=b["mouth"],
+        **b,
         feature_kind=FEATURE_KIND,
         feature_dim=int(features.shape[-1]),
         n_frames=n,

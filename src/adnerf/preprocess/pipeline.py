@@ -306,8 +306,13 @@ def _step_plate(work: _Work, bar: Bar) -> dict:
     return doc
 
 
-def _bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float) -> dict:
-    """Head box (canonical), torso box (camera), near/far and mouth point from the tracked head."""
+def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float) -> dict:
+    """Head box (canonical), torso box (camera), near/far and mouth point from the tracked head.
+
+    Returns:
+        ``{"head_aabb", "torso_aabb", "near", "far", "mouth"}``: the :class:`SceneMeta` fields of
+        those names, for ``SceneMeta(..., **bounds)``.
+    """
     fx, fy, cx, cy = K
     z = poses[:, 2, 3]
     zc = float(np.median(z))
@@ -363,18 +368,14 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
     features = work.load("features")
     n = len(frames)
     K = _intrinsics(config, info["width"], info["height"])
-    b = _bounds(labels, poses, K, config.head_width)
+    b = scene_bounds(labels, poses, K, config.head_width)
     train, test = tail_split(n, config.test_fraction)
     meta = SceneMeta(
         fps=float(info["fps"]),
         width=int(info["width"]),
         height=int(info["height"]),
         intrinsics=K,
-        near=b["near"],
-        far=b["far"],
-        head_aabb=b["head_aabb"],
-        torso_aabb=b["torso_aabb"],
-        mouth=b["mouth"],
+        **b,
         feature_kind=config.features,
         feature_dim=int(features.shape[-1]),
         n_frames=n,
