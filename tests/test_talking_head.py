@@ -12,6 +12,7 @@ import torch
 
 from adnerf.cli import main
 from adnerf.data import VERSION, DatasetError, load_dataset, write_wav
+from adnerf.demo import check_reused_scene, run_demo
 from adnerf.evaluate import mouth_darkness, evaluate_run, mouth_boxes
 from adnerf.io import AudioTrack, read_audio, read_video
 from adnerf.render_video import RenderError, check_speech, load_poses, pingpong, render_frames
@@ -218,3 +219,19 @@ def test_stage_two_backgrounds_are_the_head_render_where_torso_rays_are_drawn(ti
         torch.testing.assert_close(out[f, need], ref[need], rtol=0, atol=0)
         torch.testing.assert_close(out[f, ~need], tr.plate[~need], rtol=0, atol=0)
     assert (tmp_path / "head_renders.pt").exists()
+
+
+def test_demo_refuses_a_folder_with_another_scene(tiny: Path, tmp_path: Path) -> None:
+    # The tiny scene is exactly what TINY makes; a folder left by a demo with other settings (the
+    # scene's length changed between versions) is refused before any training, so the metrics
+    # are never reported under settings they were not measured with.
+    meta = load_dataset(tiny).meta
+    check_reused_scene(meta, TINY, tiny)
+    shutil.copytree(tiny, tmp_path / "demo" / "data")
+    longer = SynthConfig(seconds=3.0, size=32, voice="formant", seed=3)
+    with pytest.raises(DatasetError, match="another scene"):
+        run_demo(tmp_path / "demo", synth_config=longer, train_config=TINY_TRAIN, progress=False, log=lambda _: None)
+    assert not (tmp_path / "demo" / "run").exists()
+    for other in (SynthConfig(seconds=1.6, size=48), SynthConfig(seconds=1.6, size=32, test_fraction=0.5)):
+        with pytest.raises(DatasetError, match="another scene"):
+            check_reused_scene(meta, other, tiny)

@@ -4,7 +4,8 @@ Steps: synthesise a scene (``DIR/data``), train both stages (``DIR/run``), evalu
 frames, and render the held-out audio three ways: with the original poses, with a yaw of
 +15 degrees, and over a replaced background. Writes ``DIR/demo.mp4`` (ground truth and the three
 renders side by side, with the held-out audio), ``DIR/contact_sheet.png`` and ``DIR/metrics.json``.
-Re-running with the same folder reuses the scene and resumes the training.
+Re-running with the same folder reuses the scene and resumes the training; a folder holding
+another scene than the demo's is refused (:func:`check_reused_scene`).
 """
 
 from __future__ import annotations
@@ -17,14 +18,14 @@ from typing import Callable
 
 import numpy as np
 
-from .data import load_dataset
+from .data import DatasetError, SceneMeta, load_dataset, tail_split
 from .evaluate import evaluate_run
 from .io import AudioTrack, write_video
 from .render_video import render_frames
 from .synth import SynthConfig, synthesize
 from .train import TrainConfig, load_run, train
 
-__all__ = ["DEMO_SYNTH", "DEMO_TRAIN", "contact_sheet", "run_demo"]
+__all__ = ["DEMO_SYNTH", "DEMO_TRAIN", "check_reused_scene", "contact_sheet", "run_demo"]
 
 # 30 s rather than the synthesiser's 18 s: the audio encoder learns the jaw from the training
 # frames' speech alone, and more of it generalises better. Measured on the stage-1 head alone with
@@ -44,6 +45,22 @@ def new_background(height: int, width: int) -> np.ndarray:
     h, w = img.shape[:2]
     x0 = (w - h) // 2
     return cv2.resize(img[:, x0 : x0 + h], (width, height), interpolation=cv2.INTER_AREA)
+
+
+def check_reused_scene(meta: SceneMeta, config: SynthConfig, where: Path) -> None:
+    """Raise :class:`~adnerf.data.DatasetError` if the scene in ``where`` is not the one ``config``
+    makes (length, size, frame rate, held-out frames), e.g. one left by an older demo: its figures
+    would be reported under this demo's settings."""
+    n = int(round(config.seconds * config.fps))
+    _, test = tail_split(n, config.test_fraction)
+    found = (meta.n_frames, meta.width, meta.height, meta.fps, list(meta.test))
+    wanted = (n, config.size, config.size, config.fps, test)
+    if found != wanted:
+        raise DatasetError(
+            f"{where} holds another scene ({meta.source}; {meta.n_frames} frames, {len(meta.test)} held out) than this demo "
+            f"makes ({config.seconds:g} s at {config.fps:g} fps, {config.size} px, {len(test)} held out); "
+            "choose another output folder or delete that one"
+        )
 
 
 def contact_sheet(path: Path, rows: list[np.ndarray], titles: list[str], row_labels: list[str]) -> Path:
@@ -90,6 +107,7 @@ def run_demo(
         synthesize(data_dir, synth_config)
     synth_seconds = time.perf_counter() - t0
     ds = load_dataset(data_dir)
+    check_reused_scene(ds.meta, synth_config, data_dir)
     t1 = time.perf_counter()
     train(data_dir, run_dir, config=train_config, device=device, resume=(run_dir / "run.json").exists(), progress=progress)
     train_seconds = time.perf_counter() - t1
