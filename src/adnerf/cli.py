@@ -156,7 +156,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         cfg.validate()
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    with tqdm(total=int(round(cfg.seconds * cfg.fps)), desc="synth frames", unit="frame") as bar:
+    with tqdm(total=cfg.n_frames, desc="synth frames", unit="frame") as bar:
         out = synthesize(args.output, cfg, progress=lambda step, done, total: bar.update(done - bar.n), overwrite=args.overwrite)
     print(f"{out}: synthetic talking head, {cfg.seconds:g} s at {cfg.fps:g} fps, {cfg.size}x{cfg.size}")
     return 0

@@ -51,7 +51,7 @@ def check_reused_scene(meta: SceneMeta, config: SynthConfig, where: Path) -> Non
     """Raise :class:`~adnerf.data.DatasetError` if the scene in ``where`` is not the one ``config``
     makes (length, size, frame rate, held-out frames), e.g. one left by an older demo: its figures
     would be reported under this demo's settings."""
-    n = int(round(config.seconds * config.fps))
+    n = config.n_frames
     _, test = tail_split(n, config.test_fraction)
     found = (meta.n_frames, meta.width, meta.height, meta.fps, list(meta.test))
     wanted = (n, config.size, config.size, config.fps, test)

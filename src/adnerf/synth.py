@@ -87,6 +87,11 @@ class SynthConfig:
     test_fraction: float = 0.15
     max_yaw: float = 20.0
 
+    @property
+    def n_frames(self) -> int:
+        """Frames of the video: ``seconds * fps``, rounded."""
+        return int(round(self.seconds * self.fps))
+
     def validate(self) -> None:
         """Raise ``ValueError`` on impossible settings."""
         if self.seconds < 1.0:
@@ -451,7 +456,7 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
     """
     config.validate()
     size = config.size
-    n = int(round(config.seconds * config.fps))
+    n = config.n_frames
     samples, voice = speech_audio(config.seconds, config.voice, config.seed)
     times = np.arange(n) / config.fps
     jaw = mouth_opening(samples, SAMPLE_RATE, times)
