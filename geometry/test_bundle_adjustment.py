@@ -9,6 +9,7 @@ import torch
 from adnerf.pose import euler_rotation
 from adnerf.preprocess.bundle import bundle_adjust, ellipsoid_points, reprojection_residuals, residual_jacobians
 from adnerf.preprocess.check import align_poses
+from adnerf.preprocess.headpose import triangulate_canonical
 
 K = (300.0, 310.0, 64.0, 60.0)
 
@@ -144,3 +145,39 @@ def test_align_poses_undoes_a_similarity() -> None:
     est[5, :3, :3] = euler_rotation(0.0, 0.0, np.radians(2.0), like=R).numpy() @ est[5, :3, :3]
     rot, _, _ = align_poses(est, true)
     assert rot[5] == pytest.approx(2.0, abs=0.1)
+
+
+def _poses(R: torch.Tensor, t: torch.Tensor) -> np.ndarray:
+    out = np.tile(np.eye(4), (len(R), 1, 1))
+    out[:, :3, :3], out[:, :3, 3] = R.numpy(), t.numpy()
+    return out
+
+
+def test_triangulate_canonical_recovers_a_point_seen_from_turning_poses() -> None:
+    R, t, _ = _scene(n=20)
+    p = torch.tensor([[0.1, 0.45, -0.8]], dtype=torch.float64)
+    uv = _observe(R, t, p)[:, 0].numpy()
+    uv[3] = np.nan  # a frame without a landmark is skipped
+    est = triangulate_canonical(uv, _poses(R, t), K, prior=np.array([0.0, 0.0, 0.0]), prior_weight=1e-12)
+    np.testing.assert_allclose(est, p[0].numpy(), atol=1e-8)
+
+
+def test_triangulate_canonical_takes_depth_from_the_prior_when_the_head_does_not_turn() -> None:
+    """With one pose for every frame, the rays coincide: the answer is the point of that ray
+    nearest the prior (a weak prior moves nothing the rays decide)."""
+    R, t, _ = _scene(n=1)
+    poses = np.repeat(_poses(R, t), 10, axis=0)
+    uv = np.repeat(np.array([[70.0, 80.0]]), 10, axis=0)
+    prior = np.array([0.2, -0.1, 0.3])
+    est = triangulate_canonical(uv, poses, K, prior, prior_weight=1e-9)
+    # The ray in canonical space: origin -R^T t, direction R^T d.
+    Rm, tm = poses[0, :3, :3], poses[0, :3, 3]
+    d = np.array([(70.0 - K[2]) / K[0], (80.0 - K[3]) / K[1], 1.0])
+    d = Rm.T @ d / np.linalg.norm(d)
+    o = -Rm.T @ tm
+    nearest = o + d * ((prior - o) @ d)
+    np.testing.assert_allclose(est, nearest, atol=1e-6)
+    assert np.all(np.isfinite(est))
+    np.testing.assert_array_equal(triangulate_canonical(np.full((4, 2), np.nan), poses[:4], K, prior), prior)
+    with pytest.raises(ValueError, match="prior_weight"):
+        triangulate_canonical(uv, poses, K, prior, prior_weight=0.0)

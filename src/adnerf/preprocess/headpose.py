@@ -19,7 +19,7 @@ from ..data import LABEL_HEAD
 from .bundle import bundle_adjust, ellipsoid_points
 from .tracking import Tracks
 
-__all__ = ["HeadTrack", "head_boxes", "estimate_head_poses", "mean_rotation", "smooth_poses"]
+__all__ = ["HeadTrack", "head_boxes", "estimate_head_poses", "mean_rotation", "smooth_poses", "triangulate_canonical"]
 
 
 @dataclass
@@ -98,6 +98,44 @@ def smooth_poses(poses: np.ndarray, sigma: float) -> np.ndarray:
     out[:, :3, :3] = np.stack([M @ cv2.Rodrigues(v)[0] for v in rel])
     out[:, :3, 3] = t
     return out
+
+
+def triangulate_canonical(
+    pixels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], prior: np.ndarray, prior_weight: float = 0.01
+) -> np.ndarray:
+    """The canonical point seen at ``pixels`` under head ``poses``: linear least squares over rays.
+
+    Minimises ``sum_i |(I - d_i d_i^T)(R_i p + t_i)|^2 + w N |p - prior|^2`` over canonical ``p``,
+    where ``d_i`` is the unit camera ray through pixel ``i``: the distance (scene units) of the
+    point from every ray, plus a weak pull towards ``prior`` that decides what the rays leave
+    open (a talking head turns little, so depth along the viewing direction is barely constrained).
+
+    Args:
+        pixels: ``(N, 2)`` pixel positions (centre convention); rows with NaN are skipped.
+        poses: ``(N, 4, 4)`` head-canonical -> camera.
+        K: ``(fx, fy, cx, cy)``.
+        prior: ``(3,)`` canonical point favoured where the rays do not decide.
+        prior_weight: ``w``; must be positive (it keeps the system well posed).
+
+    Returns:
+        ``(3,)`` float64 canonical point; ``prior`` when no row is finite.
+    """
+    if not prior_weight > 0:
+        raise ValueError(f"prior_weight must be positive; got {prior_weight}")
+    prior = np.asarray(prior, dtype=np.float64)
+    ok = np.isfinite(pixels).all(1)
+    if not ok.any():
+        return prior.copy()
+    fx, fy, cx, cy = K
+    d = np.stack([(pixels[ok, 0] - cx) / fx, (pixels[ok, 1] - cy) / fy, np.ones(int(ok.sum()))], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    A = np.eye(3) - d[:, :, None] * d[:, None, :]  # (n, 3, 3) projectors off each ray
+    R, t = poses[ok, :3, :3], poses[ok, :3, 3]
+    RtA = R.transpose(0, 2, 1) @ A
+    w = prior_weight * len(d)
+    lhs = (RtA @ R).sum(0) + w * np.eye(3)
+    rhs = -np.einsum("nij,nj->i", RtA, t) + w * prior
+    return np.linalg.solve(lhs, rhs)
 
 
 def _pnp(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
