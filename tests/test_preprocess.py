@@ -46,9 +46,15 @@ def test_preprocess_recovers_the_synthetic_truth(preprocessed: Path, scene: Path
     assert out["rotation_median_deg"] < 10.0
     assert out["translation_median_head_widths"] < 0.1
     assert out["plate_psnr_seen"] > 28.0
+    # The mouth point triangulated from the lip landmarks lands on the true mouth (measured 1.8 px
+    # here; the fixed guess that --face none keeps lands 14.7 px away).
+    assert out["mouth_error_median_px"] < 4.0
     report = json.loads((preprocessed / "preprocess_report.json").read_text())
-    assert set(report["timings_s"]) == {"decode", "features", "parse", "pose", "plate", "write"}
+    assert set(report["timings_s"]) == {"decode", "features", "parse", "face", "pose", "plate", "write"}
     assert report["parse_face_failures"] == 0
+    assert report["face_detected"] == 75 and report["face_interpolated"] == 0 and report["face_backend"] == "dlib"
+    landmarks = np.load(preprocessed / "landmarks.npy")
+    assert landmarks.shape == (75, 68, 2) and np.isfinite(landmarks).all()
     assert report["pose_reprojection_rms_px"] < 1.0
     assert (preprocessed / "preprocess_report.png").stat().st_size > 0
     assert not any(p.name.startswith(".") for p in preprocessed.parent.iterdir()), "work folder left behind"
@@ -119,6 +125,28 @@ def test_face_in_too_few_frames_is_refused(scene: Path, tmp_path: Path, monkeypa
     with pytest.raises(PreprocessError, match=r"only 23 of 75 frames \(31%\)"):
         preprocess_video(scene / "video.mp4", tmp_path / "out")
     assert not (tmp_path / "out").exists() and not (tmp_path / ".out.preprocess").exists()
+
+
+def test_face_detector_failures_are_refused_or_counted(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from adnerf.preprocess.landmarks import DlibFaceDetector
+
+    real = DlibFaceDetector.detect
+    calls = {"n": 0}
+
+    def flaky(self: DlibFaceDetector, image: np.ndarray) -> list:
+        calls["n"] += 1
+        return real(self, image) if calls["n"] % 3 == 0 else []  # a face in every third frame
+
+    monkeypatch.setattr(DlibFaceDetector, "detect", flaky)
+    with pytest.raises(PreprocessError, match=r"found a face in only 25 of 75 frames \(33%\).*--face none"):
+        preprocess_video(scene / "video.mp4", tmp_path / "out")
+    assert not (tmp_path / "out").exists() and not (tmp_path / ".out.preprocess").exists()
+    monkeypatch.setattr(DlibFaceDetector, "detect", lambda self, image: [])
+    with pytest.raises(PreprocessError, match="found no face in any frame"):
+        preprocess_video(scene / "video.mp4", tmp_path / "out")
+    for bad, message in (("haar", "--face must be"), (f"dlib:{tmp_path / 'none.dat'}", "no shape predictor file")):
+        with pytest.raises(PreprocessError, match=message):
+            preprocess_video(scene / "video.mp4", tmp_path / "out", PreprocessConfig(face=bad))
 
 
 def test_moving_camera_is_measured() -> None:
@@ -211,8 +239,9 @@ def test_astronaut_in_plane_motion_is_recovered() -> None:
 # ----------------------------------------------------------------------------- import-adnerf
 
 
-def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 0) -> Path:
-    """Write the synthetic scene as the original AD-NeRF preprocessing would leave it."""
+def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 0, lms: bool = False) -> Path:
+    """Write the synthetic scene as the original AD-NeRF preprocessing would leave it (with
+    ``lms``: landmark files whose lip points sit on the true mouth point's image)."""
     from adnerf.data import load_dataset
     from adnerf.preprocess.adnerf_import import ours_pose_to_adnerf
 
@@ -231,6 +260,14 @@ def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 
     fx, fy, cx, cy = meta.intrinsics
     rng = np.random.default_rng(0)
     np.save(root / "aud.npy", rng.normal(size=(meta.n_frames + first_id, 16, 29)).astype(np.float32))
+    if lms:
+        mouth = ds.truth.poses[:, :3, :3] @ np.array(meta.mouth) + ds.truth.poses[:, :3, 3]
+        uv = np.stack([fx * mouth[:, 0] / mouth[:, 2] + cx, fy * mouth[:, 1] / mouth[:, 2] + cy], 1) - 0.5  # AD-NeRF's pixel centres
+        for k in range(meta.n_frames):
+            points = np.tile(uv[k], (68, 1)) + rng.normal(scale=5.0, size=(68, 2))
+            a = np.arange(8) * np.pi / 4
+            points[60:68] = uv[k] + 2.0 * np.stack([np.cos(a), np.sin(a)], 1)  # inner lips centred on the mouth
+            np.savetxt(root / "ori_imgs" / f"{k + first_id}.lms", points, "%f")
     for name, idx in (("train", meta.train), ("val", meta.test)):
         doc = {"focal_len": fx, "cx": cx - 0.5, "cy": cy - 0.5, "frames": [{"img_id": k + first_id, "aud_id": k + first_id, "transform_matrix": M[k].tolist(), "face_rect": [0, 0, 10, 10]} for k in idx]}
         (root / f"transforms_{name}.json").write_text(json.dumps(doc))
@@ -243,7 +280,7 @@ def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 
 def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     from adnerf.data import load_dataset
 
-    src = _adnerf_folder(scene, tmp_path / "obama")
+    src = _adnerf_folder(scene, tmp_path / "obama", lms=True)
     out = tmp_path / "imported"
     assert main(["import-adnerf", str(src), "-o", str(out)]) == 0
     assert "frames" in capsys.readouterr().out
@@ -265,6 +302,15 @@ def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path
     assert (lo[[0, 2]] <= t_lo[[0, 2]]).all() and (hi[[0, 2]] >= t_hi[[0, 2]]).all()
     assert np.abs(ds.frames.astype(int) - truth.frames.astype(int)).mean() < 3.0
     assert abs(ds.audio.duration - truth.audio.duration) < 0.05
+    # The mouth point, triangulated from the landmark files, projects where the true one does.
+    lms = np.load(out / "landmarks.npy")
+    assert lms.shape == (truth.meta.n_frames, 68, 2)
+    def project(point: tuple, poses: np.ndarray, K: tuple) -> np.ndarray:
+        p = poses[:, :3, :3] @ np.array(point) + poses[:, :3, 3]
+        return np.stack([K[0] * p[:, 0] / p[:, 2] + K[2], K[1] * p[:, 1] / p[:, 2] + K[3]], 1)
+
+    err = np.linalg.norm(project(ds.meta.mouth, ds.poses, ds.meta.intrinsics) - project(truth.meta.mouth, truth.truth.poses, truth.meta.intrinsics), axis=1)
+    assert err.max() < 0.1, err.max()
 
 
 def test_import_adnerf_trims_audio_to_the_first_frame_and_reports_bad_folders(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

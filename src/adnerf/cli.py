@@ -167,7 +167,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
     from .preprocess.pipeline import PreprocessConfig, preprocess_video
 
-    cfg = PreprocessConfig(parser=args.parser, features=args.features, flow=args.flow, focal=args.focal, test_fraction=args.test_fraction)
+    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, focal=args.focal, test_fraction=args.test_fraction)
     bars: dict[str, tqdm] = {}
 
     def progress(step: str, done: int, total: int) -> None:
@@ -179,8 +179,8 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
             bar.close()
 
     report = preprocess_video(args.video, args.output, cfg, progress=progress, overwrite=args.overwrite)
-    keys = ("frames", "parse_face_failures", "pose_reprojection_rms_px", "plate_filled_fraction", "timings_s")
-    print(json.dumps({k: report[k] for k in keys}, indent=1))
+    keys = ("frames", "parse_face_failures", "face_detected", "face_interpolated", "pose_reprojection_rms_px", "plate_filled_fraction", "timings_s")
+    print(json.dumps({k: report[k] for k in keys if k in report}, indent=1))
     print(f"{args.output}: dataset written (report: {args.output}/preprocess_report.json, .png)")
     return 0
 
@@ -376,6 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("-o", "--output", required=True, help="dataset folder to create")
     pre.add_argument("--parser", default="classical", help="face parser: classical (default, needs no weights) or bisenet:CHECKPOINT (your 19-class face-parsing BiSeNet .pth, e.g. the 79999_iter.pth AD-NeRF uses)")
     pre.add_argument("--features", choices=("logmel", "phonemes", "none"), default="logmel", help="audio features (none: silent dataset, allowed without audio)")
+    pre.add_argument("--face", default="dlib", help="face box and 68 landmarks: dlib (default; HOG detector and the 68-point model of the face-recognition-models package), dlib:PREDICTOR.dat (your own 68-point model) or none")
     pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
     pre.add_argument("--focal", type=float, default=None, help="focal length in pixels (default 1.33 x the larger frame side)")
     pre.add_argument("--test-fraction", type=float, default=0.1, help="fraction of frames at the end held out for testing")

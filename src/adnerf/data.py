@@ -11,6 +11,9 @@ Layout (format ``adnerf-dataset``, version 1)::
       poses.npy            (N, 4, 4) float64 head-canonical -> camera transforms
       audio.wav            the audio track (mono PCM, clock starts at frame 0's time)
       features.npy         (N, 16, D) float32 audio feature windows, one per frame
+      landmarks.npy        optional: (N, 68, 2) float64 face landmarks (iBUG layout, pixel centres at
+                           +0.5) from adnerf preprocess or an imported AD-NeRF folder; training does
+                           not read them (the mouth point in meta.json was derived from them)
       truth/               synthetic scenes only: poses.npy, parsing.npy (N, H, W) uint8,
                            depth.npy (N, H, W) float32 (distance along the unit pixel ray,
                            +inf where no surface), jaw.npy (N,) mouth opening in [0, 1]

@@ -6,15 +6,19 @@ settings changed):
 
 1. ``decode``   frames and audio (PyAV); checks length and audio presence.
 2. ``features`` per-frame audio feature windows (:mod:`adnerf.features`).
-3. ``parse``    background / head / torso label maps (:mod:`adnerf.preprocess.parsing`), face
-                presence per frame, camera-motion check.
-4. ``pose``     point tracks on the rigid head (dense flow), bundle adjustment, re-observation of
+3. ``parse``    background / head / torso label maps (:mod:`adnerf.preprocess.parsing`), a
+                person in each frame, camera-motion check.
+4. ``face``     face box and 68 landmarks per frame (:mod:`.landmarks`, dlib by default; searched
+                around the parsed head), failures interpolated and counted; a video whose face is
+                detected in too few frames is refused.
+5. ``pose``     point tracks on the rigid head (dense flow), bundle adjustment, re-observation of
                 every track against its seed frame, adjustment again (:mod:`.tracking`,
                 :mod:`.bundle`, :mod:`.headpose`).
-5. ``plate``    background plate (:mod:`.plate`).
-6. ``write``    bounds, splits, ``meta.json``, the report (``preprocess_report.json`` and
-                ``preprocess_report.png``); the dataset is written to a temporary folder and
-                renamed into place, then the work folder is removed.
+6. ``plate``    background plate (:mod:`.plate`).
+7. ``write``    bounds (the mouth point triangulated from the lip landmarks under the head
+                poses), splits, ``meta.json``, ``landmarks.npy``, the report
+                (``preprocess_report.json`` and ``preprocess_report.png``); the dataset is written
+                to a temporary folder and renamed into place, then the work folder is removed.
 
 Scene units: the head is 1.6 units wide (as in the synthetic scene), so boxes and near/far have
 the same meaning in both.
@@ -37,10 +41,11 @@ import numpy as np
 
 from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset, tail_split, write_wav
 from ..io import AudioTrack, MediaError, read_audio, read_video
+from .landmarks import INNER_LIPS
 
 __all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "STEPS"]
 
-STEPS = ("decode", "features", "parse", "pose", "plate", "write")
+STEPS = ("decode", "features", "parse", "face", "pose", "plate", "write")
 FEATURE_CHOICES = ("logmel", "phonemes", "none")
 
 
@@ -56,6 +61,9 @@ class PreprocessConfig:
         parser: Parsing backend: ``"classical"`` (no weights) or ``"bisenet:PATH"`` (a user's
             CelebAMask-HQ BiSeNet checkpoint; :mod:`adnerf.preprocess.bisenet`).
         features: Audio features: ``"logmel"``, ``"phonemes"`` or ``"none"`` (silent dataset).
+        face: Face box and landmark backend: ``"dlib"`` (bundled 68-point model),
+            ``"dlib:PATH"`` (a user's 68-point dlib shape predictor) or ``"none"`` (no landmarks;
+            the mouth point is then a fixed guess on the head).
         flow: Dense optical flow: ``"dis"`` or ``"deepflow"``.
         focal: Focal length in pixels; ``None`` assumes ``1.33 * max(width, height)`` (a 41 degree
             field of view; the synthetic scene's camera). Pose accuracy depends on it: give the
@@ -71,6 +79,7 @@ class PreprocessConfig:
 
     parser: str = "classical"
     features: str = "logmel"
+    face: str = "dlib"
     flow: str = "dis"
     focal: float | None = None
     test_fraction: float = 0.1
@@ -91,6 +100,10 @@ class PreprocessConfig:
             raise PreprocessError(f"--parser must be classical or bisenet:CHECKPOINT; got {self.parser!r}")
         if self.parser.startswith("bisenet:") and not Path(self.parser.split(":", 1)[1]).is_file():
             raise PreprocessError(f"--parser {self.parser}: no checkpoint file there (adnerf downloads no weights; give your 19-class face-parsing BiSeNet .pth)")
+        if self.face not in ("dlib", "none") and not self.face.startswith("dlib:"):
+            raise PreprocessError(f"--face must be dlib, dlib:PREDICTOR.dat or none; got {self.face!r}")
+        if self.face.startswith("dlib:") and not Path(self.face.split(":", 1)[1]).is_file():
+            raise PreprocessError(f"--face {self.face}: no shape predictor file there")
         if self.focal is not None and not self.focal > 0:
             raise PreprocessError(f"--focal must be positive; got {self.focal}")
         if not 0.0 < self.test_fraction < 0.5:
@@ -102,6 +115,7 @@ _STEP_KEYS = {
     "decode": ("min_seconds",),
     "features": ("features",),
     "parse": ("parser", "min_face_fraction"),
+    "face": ("face",),
     "pose": ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "smooth_sigma"),
     "plate": (),
     "write": ("test_fraction",),
@@ -250,6 +264,40 @@ def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) ->
     return doc
 
 
+def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+    from .landmarks import make_face_detector, track_faces
+
+    try:
+        detector = make_face_detector(config.face)
+    except (ValueError, ImportError) as exc:
+        raise PreprocessError(f"--face {config.face}: {exc}") from exc
+    if detector is None:
+        doc = {"backend": "none"}
+        work.save_json("face", doc)
+        bar("face", 1, 1)
+        return doc
+    frames, labels = work.load("frames"), work.load("parsing")
+    track = track_faces(frames, detector, labels, progress=lambda d, t: bar("face", d, t))
+    n, found = len(frames), int(track.detected.sum())
+    if found == 0:
+        raise PreprocessError(f"{video}: the face detector ({detector.name}) found no face in any frame (try --face none to go on without landmarks)")
+    if found < config.min_face_fraction * n:
+        raise PreprocessError(
+            f"{video}: the face detector ({detector.name}) found a face in only {found} of {n} frames ({found / n:.0%}); at least {config.min_face_fraction:.0%} are needed (or --face none)"
+        )
+    work.save("landmarks", track.landmarks)
+    work.save("face_boxes", track.boxes)
+    doc = {
+        "backend": detector.name,
+        "detected": found,
+        "interpolated": n - found,
+        "score_median": float(np.nanmedian(track.scores)),
+        "box_width_median_px": float(np.median(track.boxes[:, 2] - track.boxes[:, 0])),
+    }
+    work.save_json("face", doc)
+    return doc
+
+
 def _intrinsics(config: PreprocessConfig, w: int, h: int) -> tuple[float, float, float, float]:
     f = config.focal if config.focal is not None else 1.33 * max(w, h)
     return (float(f), float(f), w / 2.0, h / 2.0)
@@ -306,8 +354,13 @@ def _step_plate(work: _Work, bar: Bar) -> dict:
     return doc
 
 
-def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float) -> dict:
+def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, mouth_pixels: np.ndarray | None = None) -> dict:
     """Head box (canonical), torso box (camera), near/far and mouth point from the tracked head.
+
+    The mouth point is triangulated from ``mouth_pixels`` (``(N, 2)``, e.g. the centre of the inner
+    lip landmarks per frame) under the poses (:func:`.headpose.triangulate_canonical`); without
+    them, or for what the rays leave open, it is a guess on the front of the head at 55 % of its
+    lower half.
 
     Returns:
         ``{"head_aabb", "torso_aabb", "near", "far", "mouth"}``: the :class:`SceneMeta` fields of
@@ -340,11 +393,18 @@ def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, f
     near = max(1e-3, float(z.min()) - 1.2 * head_width)
     far = float(z.max()) + max(depth, head_width) + 1.2 * head_width
     mouth = (0.0, 0.55 * bottom, -0.51 * head_width)
+    if mouth_pixels is not None:
+        from .headpose import triangulate_canonical
+
+        mouth = tuple(float(v) for v in triangulate_canonical(mouth_pixels, poses, K, np.array(mouth)))
     return {"head_aabb": head_aabb, "torso_aabb": torso_aabb, "near": near, "far": far, "mouth": mouth}
 
 
-def _contact_sheet(frames: np.ndarray, labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, count: int = 4) -> np.ndarray:
-    """Sample frames with the parsing overlaid and the head's canonical axes drawn (x red, y green, z blue)."""
+def _contact_sheet(
+    frames: np.ndarray, labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, landmarks: np.ndarray | None, count: int = 4
+) -> np.ndarray:
+    """Sample frames with the parsing overlaid, the landmarks dotted (yellow) and the head's
+    canonical axes drawn (x red, y green, z blue)."""
     colours = np.array([[0, 0, 0], [255, 60, 60], [60, 200, 60]], np.uint8)
     tiles = []
     for i in np.linspace(0, len(frames) - 1, count).round().astype(int):
@@ -354,6 +414,9 @@ def _contact_sheet(frames: np.ndarray, labels: np.ndarray, poses: np.ndarray, K:
         axes = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.6 * head_width
         uv = _pixels(axes @ poses[i, :3, :3].T + poses[i, :3, 3], K)
         thick = max(1, img.shape[0] // 200)
+        if landmarks is not None:
+            for q in landmarks[i]:
+                cv2.circle(img, tuple(np.floor(q).astype(int)), thick, (255, 230, 0), -1, cv2.LINE_AA)
         for k, col in zip((1, 2, 3), ((255, 0, 0), (0, 255, 0), (0, 0, 255))):
             cv2.line(img, tuple(np.round(uv[0]).astype(int)), tuple(np.round(uv[k]).astype(int)), col, thick, cv2.LINE_AA)
         cv2.putText(img, f"{i}", (4, 14 + 2 * thick), cv2.FONT_HERSHEY_SIMPLEX, 0.4 * thick, (255, 255, 255), thick, cv2.LINE_AA)
@@ -368,7 +431,8 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
     features = work.load("features")
     n = len(frames)
     K = _intrinsics(config, info["width"], info["height"])
-    b = scene_bounds(labels, poses, K, config.head_width)
+    landmarks = work.load("landmarks") if docs["face"]["backend"] != "none" else None
+    b = scene_bounds(labels, poses, K, config.head_width, None if landmarks is None else landmarks[:, INNER_LIPS].mean(1))
     train, test = tail_split(n, config.test_fraction)
     meta = SceneMeta(
         fps=float(info["fps"]),
@@ -381,7 +445,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         n_frames=n,
         train=train,
         test=test,
-        source=f"adnerf preprocess {video.name}: parser={config.parser} flow={config.flow} focal={K[0]:g}",
+        source=f"adnerf preprocess {video.name}: parser={config.parser} face={config.face} flow={config.flow} focal={K[0]:g}",
     )
     if info["audio"]:
         audio = read_audio(work.folder / "audio.wav")
@@ -397,17 +461,20 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         "seconds": info["seconds"],
         "config": asdict(config),
         **{f"parse_{k}": v for k, v in docs["parse"].items()},
+        **{f"face_{k}": v for k, v in docs["face"].items()},
         **{f"pose_{k}": v for k, v in docs["pose"].items()},
         "plate_filled_fraction": docs["plate"]["filled_fraction"],
         "bounds": b,
         "timings_s": {s: work.record.get(s, {}).get("seconds") for s in STEPS if s != "write"},
     }
-    sheet = _contact_sheet(frames, labels, poses, K, config.head_width)
+    sheet = _contact_sheet(frames, labels, poses, K, config.head_width, landmarks)
 
     def extra(folder: Path) -> None:
         report["timings_s"]["write"] = round(time.perf_counter() - t0, 3)  # all but the final rename
         (folder / "preprocess_report.json").write_text(json.dumps(report, indent=1))
         cv2.imwrite(str(folder / "preprocess_report.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+        if landmarks is not None:
+            np.save(folder / "landmarks.npy", landmarks)
 
     save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, extra=extra, overwrite=overwrite)
     bar("write", 1, 1)
@@ -444,7 +511,7 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
     try:
         for step in STEPS[:-1]:
             if work.done(step):
-                if step in ("parse", "pose", "plate"):
+                if step in ("parse", "face", "pose", "plate"):
                     docs[step] = work.load_json(step)
                 bar(f"{step} (done before)", 1, 1)
                 continue
@@ -455,6 +522,8 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
                 _step_features(work, config, bar)
             elif step == "parse":
                 docs[step] = _step_parse(video, work, config, bar)
+            elif step == "face":
+                docs[step] = _step_face(video, work, config, bar)
             elif step == "pose":
                 docs[step] = _step_pose(work, config, bar)
             elif step == "plate":
