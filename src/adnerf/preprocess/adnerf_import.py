@@ -9,6 +9,10 @@ and what we take from it:
                               ``face_rect``. The train file's frames become our train split, the
                               val file's our test split.
 ``ori_imgs/<img_id>.jpg``     The frames (``com_imgs/`` is used when ``ori_imgs/`` is missing).
+``ori_imgs/<img_id>.lms``     68 face landmarks (``x y`` per line, face_alignment's iBUG layout),
+                              when present for every frame: the mouth point is triangulated from
+                              the inner lips under the poses, and they are kept as
+                              ``landmarks.npy``.
 ``parsing/<img_id>.png``      Colour-coded parsing written by OpenCV: white background, head where
                               the file's first (blue) channel is 255 and the others 0; every other
                               colour (neck, clothes) is torso.
@@ -50,6 +54,7 @@ import numpy as np
 from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
 from ..features import load_npy_windows
 from ..io import AudioTrack, MediaError, read_audio
+from .landmarks import INNER_LIPS
 from .pipeline import PreprocessError, scene_bounds
 
 __all__ = ["adnerf_pose_to_ours", "import_adnerf", "ours_pose_to_adnerf", "parse_adnerf_parsing"]
@@ -123,6 +128,17 @@ def _read_image(path: Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
     if img is None:
         raise PreprocessError(f"{path}: missing or unreadable")
     return img
+
+
+def _read_landmarks(path: Path) -> np.ndarray:
+    """One ``.lms`` file as ``(68, 2)`` pixel positions in our centre convention."""
+    try:
+        lms = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise PreprocessError(f"{path}: not a landmark file ({exc})") from exc
+    if lms.shape != (68, 2) or not np.isfinite(lms).all():
+        raise PreprocessError(f"{path}: {lms.shape} values; AD-NeRF landmark files hold 68 rows of x y")
+    return lms + 0.5  # AD-NeRF's pixel centres sit at integers
 
 
 def _scale_to_head_width(labels: np.ndarray, poses: np.ndarray, focal: float, head_width: float) -> float:
@@ -205,6 +221,13 @@ def import_adnerf(
         if progress is not None:
             progress(k + 1, n)
 
+    landmarks = None
+    lms_files = [src / "ori_imgs" / f"{img_id}.lms" for img_id in ids]
+    if all(p.is_file() for p in lms_files):
+        landmarks = np.stack([_read_landmarks(p) for p in lms_files])
+    else:
+        notes.append("no ori_imgs/<img_id>.lms landmarks for every frame: the mouth point is a fixed guess on the head")
+
     try:
         aud = load_npy_windows(src / "aud.npy")
     except MediaError as exc:
@@ -230,7 +253,7 @@ def import_adnerf(
     scale = _scale_to_head_width(labels, poses, focal, head_width)
     poses[:, :3, 3] *= scale
     K = (focal, focal, cx, cy)
-    b = scene_bounds(labels, poses, K, head_width)
+    b = scene_bounds(labels, poses, K, head_width, None if landmarks is None else landmarks[:, INNER_LIPS].mean(1))
     # AD-NeRF's head origin is the face model's, not the middle of the head: widen the box across and in depth.
     (x0, y0, z0), (x1, y1, z1) = b["head_aabb"]
     b["head_aabb"] = ((x0 - 0.15 * head_width, y0, z0 - 0.3 * head_width), (x1 + 0.15 * head_width, y1, z1 + 0.3 * head_width))
@@ -253,7 +276,12 @@ def import_adnerf(
     )
     for note in notes:
         warnings.warn(note, stacklevel=2)
-    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, overwrite=overwrite)
+
+    def extra(folder: Path) -> None:
+        if landmarks is not None:
+            np.save(folder / "landmarks.npy", landmarks)
+
+    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, extra=extra, overwrite=overwrite)
     return {
         "dataset": str(out),
         "frames": n,
@@ -262,5 +290,6 @@ def import_adnerf(
         "size": [W, H],
         "scale": scale,
         "features": list(features.shape),
+        "landmarks": landmarks is not None,
         "notes": notes,
     }
