@@ -7,8 +7,8 @@ the background is the same in every frame: the default parser exploits exactly t
 
 Backends (:func:`make_parser`): ``"classical"`` (default, no weights), a temporal background model
 plus GrabCut per frame, then the head/torso split at the neck (see :class:`ClassicalParser`).
-Learned backends (BiSeNet with a user-supplied CelebAMask-HQ checkpoint, mediapipe) plug in behind
-the same :class:`Parser` protocol.
+Learned backends (BiSeNet with a user-supplied CelebAMask-HQ checkpoint, mediapipe's bundled
+models) plug in behind the same :class:`Parser` protocol.
 """
 
 from __future__ import annotations
@@ -232,18 +232,28 @@ def _has_both(mask: np.ndarray) -> bool:
     return bool(fg and bg)
 
 
-PARSERS = ("classical", "bisenet:CHECKPOINT")
+PARSERS = ("classical", "mediapipe", "bisenet:CHECKPOINT")
 
 
 def make_parser(spec: str) -> Parser:
-    """A parser by name: ``"classical"`` (no weights) or ``"bisenet:PATH"`` (a user's 19-class
-    face-parsing checkpoint, see :mod:`adnerf.preprocess.bisenet`; on CUDA when available).
+    """A parser by name: ``"classical"`` (no weights), ``"mediapipe"`` (mediapipe 0.10.21's bundled
+    models, an opt-in install, see :mod:`adnerf.preprocess.mediapipe_parser`) or ``"bisenet:PATH"``
+    (a user's 19-class face-parsing checkpoint, see :mod:`adnerf.preprocess.bisenet`; on CUDA when
+    available).
 
     Raises:
-        ValueError: Unknown name, or a checkpoint that cannot be loaded.
+        ValueError: Unknown name, a checkpoint that cannot be loaded, or mediapipe missing.
     """
     if spec == "classical":
         return ClassicalParser()
+    if spec == "mediapipe":
+        from .mediapipe_parser import MediapipeParser, import_mediapipe
+
+        try:
+            import_mediapipe()
+        except ImportError as exc:
+            raise ValueError(str(exc)) from exc
+        return MediapipeParser()
     if spec.startswith("bisenet:"):
         import torch
 

@@ -58,7 +58,8 @@ class PreprocessConfig:
     """Settings of :func:`preprocess_video`.
 
     Attributes:
-        parser: Parsing backend: ``"classical"`` (no weights) or ``"bisenet:PATH"`` (a user's
+        parser: Parsing backend: ``"classical"`` (no weights), ``"mediapipe"`` (opt-in install;
+            :mod:`adnerf.preprocess.mediapipe_parser`) or ``"bisenet:PATH"`` (a user's
             CelebAMask-HQ BiSeNet checkpoint; :mod:`adnerf.preprocess.bisenet`).
         features: Audio features: ``"logmel"``, ``"phonemes"`` or ``"none"`` (silent dataset).
         face: Face box and landmark backend: ``"dlib"`` (bundled 68-point model),
@@ -96,8 +97,8 @@ class PreprocessConfig:
             raise PreprocessError(f"--features must be one of {', '.join(FEATURE_CHOICES)}; got {self.features!r}")
         if self.flow not in ("dis", "deepflow"):
             raise PreprocessError(f"--flow must be dis or deepflow; got {self.flow!r}")
-        if self.parser != "classical" and not self.parser.startswith("bisenet:"):
-            raise PreprocessError(f"--parser must be classical or bisenet:CHECKPOINT; got {self.parser!r}")
+        if self.parser not in ("classical", "mediapipe") and not self.parser.startswith("bisenet:"):
+            raise PreprocessError(f"--parser must be classical, mediapipe or bisenet:CHECKPOINT; got {self.parser!r}")
         if self.parser.startswith("bisenet:") and not Path(self.parser.split(":", 1)[1]).is_file():
             raise PreprocessError(f"--parser {self.parser}: no checkpoint file there (adnerf downloads no weights; give your 19-class face-parsing BiSeNet .pth)")
         if self.face not in ("dlib", "none") and not self.face.startswith("dlib:"):

