@@ -80,8 +80,13 @@ def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path) -> None:
     assert "plate" in seen and out.is_dir()
     # A changed setting re-runs its step and the ones after it, not the ones before.
     seen.clear()
-    preprocess_video(scene / "video.mp4", tmp_path / "again", PreprocessConfig(focal=1.33 * 96, test_fraction=0.2), progress=lambda s, d, t: seen.append(s))
+    report = preprocess_video(scene / "video.mp4", tmp_path / "again", PreprocessConfig(focal=1.33 * 96, test_fraction=0.2, face="none"), progress=lambda s, d, t: seen.append(s))
     assert "parse" in seen  # the first run's work folder was removed after success
+    # Without landmarks: no landmarks.npy, and the mouth point is the fixed guess.
+    assert report["face_backend"] == "none" and "face_detected" not in report
+    assert not (tmp_path / "again" / "landmarks.npy").exists() and (out / "landmarks.npy").exists()
+    guess = json.loads((tmp_path / "again" / "meta.json").read_text())["mouth"]
+    assert guess[0] == 0.0 and json.loads((out / "meta.json").read_text())["mouth"] != guess
 
 
 def _write(path: Path, frames: np.ndarray, audio: bool = True, fps: float = 25.0) -> Path:
