@@ -18,7 +18,7 @@ from adnerf.preprocess.headpose import estimate_head_poses
 from adnerf.preprocess.parsing import person_hull, split_head_torso
 from adnerf.preprocess.pipeline import _camera_motion
 from adnerf.preprocess.plate import background_plate
-from adnerf.preprocess.tracking import TrackConfig, track_points
+from adnerf.preprocess.tracking import TrackConfig, rigid_region, track_points
 from adnerf.synth import SynthConfig, background_plate as synth_background, synthesize
 
 
@@ -177,6 +177,19 @@ def test_split_head_torso_cuts_at_the_neck() -> None:
     assert (split_head_torso(only_head)[0][only_head] == LABEL_HEAD).all()
 
 
+def test_rigid_region_stays_above_the_fraction_and_the_landmark_limit() -> None:
+    labels = np.zeros((100, 60), np.uint8)
+    labels[10:90, 10:50] = LABEL_HEAD  # a head label 80 rows tall (say, hair past the chin)
+    free = rigid_region(labels, rigid_fraction=0.5, edge_margin=0.0)
+    assert np.flatnonzero(free.any(1))[[0, -1]].tolist() == [10, 49]  # top half: rows 10-49
+    below = rigid_region(labels, rigid_fraction=0.5, edge_margin=0.0, limit=70.0)
+    np.testing.assert_array_equal(below, free)  # a limit under the cut changes nothing
+    nose = rigid_region(labels, rigid_fraction=0.5, edge_margin=0.0, limit=30.2)
+    assert np.flatnonzero(nose.any(1))[-1] == 29  # row 29's centre (29.5) is above the nose base at 30.2
+    assert not rigid_region(labels, 0.5, 0.0, limit=-5.0).any()
+    np.testing.assert_array_equal(rigid_region(labels, 0.5, 0.0, limit=float("nan")), free)
+
+
 def test_person_hull_fills_down_from_the_first_moving_pixel() -> None:
     moving = np.zeros((10, 6), bool)
     moving[3, 2] = moving[6, 4] = True
@@ -323,7 +336,9 @@ def test_import_adnerf_trims_audio_to_the_first_frame_and_reports_bad_folders(sc
     from adnerf.preprocess.adnerf_import import import_adnerf
 
     src = _adnerf_folder(scene, tmp_path / "late", first_id=5)
-    import_adnerf(src, tmp_path / "late_out")
+    with pytest.warns(UserWarning, match="no ori_imgs/<img_id>.lms"):
+        import_adnerf(src, tmp_path / "late_out")
+    assert not (tmp_path / "late_out" / "landmarks.npy").exists()
     ds = load_dataset(tmp_path / "late_out")
     full = load_dataset(scene).audio
     assert abs((full.duration - ds.audio.duration) - 5 / 25.0) < 1e-3

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset, tail_split, write_wav
 from ..io import AudioTrack, MediaError, read_audio, read_video
-from .landmarks import INNER_LIPS
+from .landmarks import INNER_LIPS, NOSE_BASE
 
 __all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "STEPS"]
 
@@ -319,7 +319,9 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
     info = work.load_json("decode")
     K = _intrinsics(config, info["width"], info["height"])
     track_cfg = TrackConfig(flow=config.flow)
-    tracks = track_points(frames, labels, track_cfg, progress=lambda d, t: bar("pose: tracks", d, t))
+    # With landmarks, the rigid region never reaches below the nose base.
+    limits = work.load("landmarks")[:, NOSE_BASE, 1] if work.load_json("face")["backend"] != "none" else None
+    tracks = track_points(frames, labels, track_cfg, progress=lambda d, t: bar("pose: tracks", d, t), limits=limits)
     kw = dict(head_width=config.head_width, shape_sigma=config.shape_sigma)
     est = estimate_head_poses(tracks, labels, K, **kw)
     chained_obs = int(tracks.observed.sum())
@@ -329,7 +331,7 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
         def predict(i: int, idx: np.ndarray) -> np.ndarray:
             return _pixels(X[idx] @ P[i, :3, :3].T + P[i, :3, 3], K)
 
-        tracks = extend_tracks(frames, labels, tracks, predict, track_cfg, reach=len(frames))
+        tracks = extend_tracks(frames, labels, tracks, predict, track_cfg, reach=len(frames), limits=limits)
         est = estimate_head_poses(tracks, labels, K, **kw, smooth_sigma=config.smooth_sigma if k == config.extend_passes - 1 else 0.0)
         bar("pose: adjust", k + 1, config.extend_passes)
     work.save("poses", est.poses)

@@ -45,7 +45,7 @@ def dense_flow(method: str) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     raise ValueError(f"unknown flow method {method!r}; choose one of {', '.join(FLOWS)}")
 
 
-def rigid_region(labels: np.ndarray, rigid_fraction: float = 0.62, edge_margin: float = 0.1) -> np.ndarray:
+def rigid_region(labels: np.ndarray, rigid_fraction: float = 0.62, edge_margin: float = 0.1, limit: float | None = None) -> np.ndarray:
     """The near-rigid part of the head in one frame: head label, eroded, above the mouth.
 
     Args:
@@ -54,6 +54,9 @@ def rigid_region(labels: np.ndarray, rigid_fraction: float = 0.62, edge_margin: 
         edge_margin: Band along the head's silhouette that is removed, as a fraction of the head's
             width (flow near an occluding edge mixes head and background motion; measured on the
             synthetic scene, points within 10 % of the width of the edge drift 3x more).
+        limit: A pixel row (``v``, centre convention) the region never reaches below, e.g. the
+            nose base from face landmarks: long hair hanging past the chin lengthens the head
+            label, and its ``rigid_fraction`` would then reach the mouth. ``None``: no limit.
 
     Returns:
         ``(H, W)`` bool.
@@ -68,7 +71,9 @@ def rigid_region(labels: np.ndarray, rigid_fraction: float = 0.62, edge_margin: 
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1, 2 * erode + 1))
         head = cv2.erode(head.astype(np.uint8), kernel) > 0
     cut = rows[0] + rigid_fraction * (rows[-1] - rows[0] + 1)
-    head[int(np.ceil(cut)) :] = False
+    if limit is not None and np.isfinite(limit):
+        cut = min(cut, limit - 0.5)  # rows whose centre lies above the limit
+    head[max(0, int(np.ceil(cut))) :] = False
     return head
 
 
@@ -145,7 +150,13 @@ def _inside(region: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return ok
 
 
-def track_points(frames: np.ndarray, labels: np.ndarray, config: TrackConfig = TrackConfig(), progress: Callable[[int, int], None] | None = None) -> Tracks:
+def _limit(limits: np.ndarray | None, i: int) -> float | None:
+    return None if limits is None else float(limits[i])
+
+
+def track_points(
+    frames: np.ndarray, labels: np.ndarray, config: TrackConfig = TrackConfig(), progress: Callable[[int, int], None] | None = None, limits: np.ndarray | None = None
+) -> Tracks:
     """Track points on the head's rigid region through a clip.
 
     Args:
@@ -153,6 +164,7 @@ def track_points(frames: np.ndarray, labels: np.ndarray, config: TrackConfig = T
         labels: ``(N, H, W)`` uint8 parsing.
         config: Tracking settings.
         progress: Called as ``progress(done, total)`` per frame pair.
+        limits: ``(N,)`` rows the rigid region stays above per frame (see :func:`rigid_region`).
 
     Returns:
         :class:`Tracks` with tracks shorter than ``config.min_length`` removed.
@@ -164,7 +176,7 @@ def track_points(frames: np.ndarray, labels: np.ndarray, config: TrackConfig = T
     alive: list[int] = []
 
     def seed(i: int) -> None:
-        region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin)
+        region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin, _limit(limits, i))
         cols = np.flatnonzero(region.any(0))
         if len(cols) == 0:
             return
@@ -190,7 +202,7 @@ def track_points(frames: np.ndarray, labels: np.ndarray, config: TrackConfig = T
             nxt = pts + _sample(fwd, pts)
             back = nxt + _sample(bwd, nxt)
             ok = np.linalg.norm(back - pts, axis=1) < config.max_fb_error
-            ok &= _inside(rigid_region(labels[i + 1], config.rigid_fraction, config.edge_margin), nxt)
+            ok &= _inside(rigid_region(labels[i + 1], config.rigid_fraction, config.edge_margin, _limit(limits, i + 1)), nxt)
             ok &= np.array([len(paths[p]) < config.max_length for p in alive])
             if config.anchor_window > 0:
                 nxt, ok = _anchor(gray, paths, alive, nxt, ok, i + 1, config)
@@ -241,6 +253,7 @@ def extend_tracks(
     predict: Callable[[int, np.ndarray], np.ndarray],
     config: TrackConfig = TrackConfig(),
     reach: int = 100,
+    limits: np.ndarray | None = None,
 ) -> Tracks:
     """Re-observe every track in the frames around it, matched directly against its seed frame.
 
@@ -258,6 +271,7 @@ def extend_tracks(
         predict: ``predict(frame, track_indices) -> (k, 2)`` predicted pixel positions.
         config: Window, thresholds and region settings.
         reach: Frames before and after the seed frame that are searched.
+        limits: ``(N,)`` rows the rigid region stays above per frame (see :func:`rigid_region`).
 
     Returns:
         New :class:`Tracks` with the added observations.
@@ -268,7 +282,7 @@ def extend_tracks(
     win = (config.anchor_window or 15,) * 2
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
     for i in range(n):
-        region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin)
+        region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin, _limit(limits, i))
         near = np.flatnonzero((np.abs(tracks.seed_frame - i) <= reach) & ~np.isfinite(uv[i, :, 0]))
         if len(near) == 0:
             continue
