@@ -9,7 +9,7 @@ import torch
 from adnerf.pose import euler_rotation
 from adnerf.preprocess.bundle import bundle_adjust, ellipsoid_points, reprojection_residuals, residual_jacobians
 from adnerf.preprocess.check import align_poses
-from adnerf.preprocess.headpose import triangulate_canonical
+from adnerf.preprocess.headpose import chain_segments, mean_rotation, triangulate_canonical
 
 K = (300.0, 310.0, 64.0, 60.0)
 
@@ -181,3 +181,38 @@ def test_triangulate_canonical_takes_depth_from_the_prior_when_the_head_does_not
     np.testing.assert_array_equal(triangulate_canonical(np.full((4, 2), np.nan), poses[:4], K, prior), prior)
     with pytest.raises(ValueError, match="prior_weight"):
         triangulate_canonical(uv, poses, K, prior, prior_weight=0.0)
+
+
+def _similarity_gauge(poses: np.ndarray, G: np.ndarray, g: np.ndarray, s: float) -> np.ndarray:
+    """The same camera motion described in another canonical frame and scale (inverse of the
+    re-expression chain_segments applies)."""
+    out = poses.copy()
+    out[:, :3, :3] = poses[:, :3, :3] @ G.T
+    out[:, :3, 3] = s * poses[:, :3, 3] - np.einsum("nij,j->ni", out[:, :3, :3], g)
+    return out
+
+
+def test_chain_segments_joins_segments_solved_in_different_gauges() -> None:
+    R, t, _ = _scene(n=50)
+    true = _poses(R, t)
+    rng = np.random.default_rng(4)
+    spans = [(0, 20), (15, 35), (30, 50)]
+    segments = []
+    for k, (a, b) in enumerate(spans):
+        G = euler_rotation(*torch.tensor(rng.normal(scale=0.3, size=3)), like=R).numpy() if k else np.eye(3)
+        g = rng.normal(scale=0.2, size=3) if k else np.zeros(3)
+        segments.append((a, _similarity_gauge(true[a:b], G, g, float(rng.uniform(0.7, 1.4)) if k else 1.0)))
+    out, joints = chain_segments(segments, 50)
+    # The same motion in the first segment's frame, up to the final mean-rotation gauge: compare
+    # with the truth after the best similarity, which must be exact.
+    rot, trans, sim = align_poses(out, true)
+    assert rot.max() < 1e-5 and trans.max() < 1e-9 and abs(sim["scale"] - 1.0) < 1e-9  # degrees: arccos resolves ~1e-6 near 0
+    np.testing.assert_allclose(joints, 0.0, atol=1e-6)
+    np.testing.assert_allclose(mean_rotation(out[:, :3, :3]), np.eye(3), atol=1e-12)
+    alone, none = chain_segments([(0, true)], 50)
+    np.testing.assert_array_equal(alone, true)
+    assert none == []
+    with pytest.raises(ValueError, match="does not overlap"):
+        chain_segments([(0, true[:20]), (20, true[20:])], 50)
+    with pytest.raises(ValueError, match="cover frames"):
+        chain_segments([(0, true[:20]), (10, true[10:30])], 50)

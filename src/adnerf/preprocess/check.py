@@ -20,37 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from ..data import load_dataset
+from .headpose import align_poses
 
 __all__ = ["align_poses", "parsing_iou", "check_preprocess", "BARS"]
 
 BARS = {"rotation_median_deg": 1.0, "translation_median_head_widths": 0.02, "iou_mean": 0.90, "plate_psnr_seen": 30.0}
 TRUE_HEAD_WIDTH = 1.6  # the synthetic head's width in its scene units
-
-
-def align_poses(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Similarity alignment of estimated to true poses and per-frame errors.
-
-    Args:
-        est, true: ``(N, 4, 4)`` head-canonical -> camera poses.
-
-    Returns:
-        ``(rotation error (N,) degrees, translation error (N,) in the true scene's units,
-        {"scale": s, "G": (3, 3), "g": (3,)})``.
-    """
-    Re, te = est[:, :3, :3], est[:, :3, 3]
-    Rt, tt = true[:, :3, :3], true[:, :3, 3]
-    u, _, vt = np.linalg.svd((Re.transpose(0, 2, 1) @ Rt).sum(0))
-    G = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    # Linear least squares in (g, s): R_est g - s t_true = -t_est.
-    n = len(est)
-    A = np.concatenate([Re, -tt[:, :, None]], axis=2).reshape(3 * n, 4)
-    sol, *_ = np.linalg.lstsq(A, -te.reshape(-1), rcond=None)
-    g, s = sol[:3], sol[3]
-    rel = Re @ G @ Rt.transpose(0, 2, 1)
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    rot = np.degrees(np.arccos(cos))
-    aligned = (np.einsum("nij,j->ni", Re, g) + te) / s
-    return rot, np.linalg.norm(aligned - tt, axis=1), {"scale": float(s), "G": G, "g": g}
 
 
 def parsing_iou(pred: np.ndarray, true: np.ndarray, classes: tuple[int, ...] = (0, 1, 2)) -> dict[int, float]:

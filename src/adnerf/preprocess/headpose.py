@@ -19,7 +19,7 @@ from ..data import LABEL_HEAD
 from .bundle import bundle_adjust, ellipsoid_points
 from .tracking import Tracks
 
-__all__ = ["HeadTrack", "head_boxes", "estimate_head_poses", "mean_rotation", "smooth_poses", "triangulate_canonical"]
+__all__ = ["HeadTrack", "head_boxes", "estimate_head_poses", "mean_rotation", "smooth_poses", "triangulate_canonical", "align_poses", "chain_segments"]
 
 
 @dataclass
@@ -100,6 +100,32 @@ def smooth_poses(poses: np.ndarray, sigma: float) -> np.ndarray:
     return out
 
 
+def align_poses(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Similarity alignment of estimated to true poses and per-frame errors.
+
+    Args:
+        est, true: ``(N, 4, 4)`` head-canonical -> camera poses.
+
+    Returns:
+        ``(rotation error (N,) degrees, translation error (N,) in the true scene's units,
+        {"scale": s, "G": (3, 3), "g": (3,)})``.
+    """
+    Re, te = est[:, :3, :3], est[:, :3, 3]
+    Rt, tt = true[:, :3, :3], true[:, :3, 3]
+    u, _, vt = np.linalg.svd((Re.transpose(0, 2, 1) @ Rt).sum(0))
+    G = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    # Linear least squares in (g, s): R_est g - s t_true = -t_est.
+    n = len(est)
+    A = np.concatenate([Re, -tt[:, :, None]], axis=2).reshape(3 * n, 4)
+    sol, *_ = np.linalg.lstsq(A, -te.reshape(-1), rcond=None)
+    g, s = sol[:3], sol[3]
+    rel = Re @ G @ Rt.transpose(0, 2, 1)
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    rot = np.degrees(np.arccos(cos))
+    aligned = (np.einsum("nij,j->ni", Re, g) + te) / s
+    return rot, np.linalg.norm(aligned - tt, axis=1), {"scale": float(s), "G": G, "g": g}
+
+
 def triangulate_canonical(
     pixels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], prior: np.ndarray, prior_weight: float = 0.01
 ) -> np.ndarray:
@@ -136,6 +162,62 @@ def triangulate_canonical(
     lhs = (RtA @ R).sum(0) + w * np.eye(3)
     rhs = -np.einsum("nij,nj->i", RtA, t) + w * prior
     return np.linalg.solve(lhs, rhs)
+
+
+def chain_segments(segments: list[tuple[int, np.ndarray]], n_frames: int) -> tuple[np.ndarray, list[float]]:
+    """Poses of overlapping segments, each in its own canonical frame and scale, in one frame.
+
+    Each segment after the first is carried into the canonical frame of the one before by the
+    similarity that best aligns their shared frames (:func:`align_poses`: ``R_a ~ R_b G``,
+    ``s t_a ~ R_b g + t_b``, so ``R_b <- R_b G`` and ``t_b <- (R_b g + t_b) / s``). A shared frame
+    takes the earlier segment's pose in the first half of the overlap and the later one's in the
+    second (the ends of a segment are its least constrained frames). Finally the canonical frame
+    is turned so that the chordal mean rotation of all frames is the identity (a single segment
+    is returned as it is).
+
+    Args:
+        segments: ``(start frame, poses (n_i, 4, 4))`` in order; segment ``k + 1`` must start
+            inside segment ``k`` and end after it.
+        n_frames: Frames in the clip; the segments must cover them.
+
+    Returns:
+        ``((n_frames, 4, 4) poses, rotation disagreement (degrees, median over the overlap) of
+        each joint after alignment)``.
+
+    Raises:
+        ValueError: Segments that do not overlap or do not cover the clip.
+    """
+    start0, first = segments[0]
+    if start0 != 0:
+        raise ValueError("the first segment must start at frame 0")
+    if len(segments) == 1:
+        if len(first) != n_frames:
+            raise ValueError(f"the segments cover frames 0-{len(first) - 1} of {n_frames}")
+        return first.copy(), []
+    out = np.full((n_frames, 4, 4), np.nan)
+    out[: len(first)] = first
+    end = len(first)
+    joints = []
+    prev_start, prev = start0, first
+    for start, poses in segments[1:]:
+        lo, hi = start, min(prev_start + len(prev), start + len(poses))
+        if not (prev_start < lo < hi) or start + len(poses) <= prev_start + len(prev):
+            raise ValueError(f"segment at frame {start} does not overlap the one before and reach past it")
+        ref = out[lo:hi]
+        rot, _, sim = align_poses(poses[: hi - lo], ref)
+        joints.append(float(np.median(rot)))
+        moved = poses.copy()
+        moved[:, :3, :3] = poses[:, :3, :3] @ sim["G"]
+        moved[:, :3, 3] = (np.einsum("nij,j->ni", poses[:, :3, :3], sim["g"]) + poses[:, :3, 3]) / sim["scale"]
+        switch = (lo + hi) // 2
+        out[switch : start + len(poses)] = moved[switch - start :]
+        end = start + len(poses)
+        prev_start, prev = start, moved
+    if end < n_frames:
+        raise ValueError(f"the segments cover frames 0-{end - 1} of {n_frames}")
+    M = mean_rotation(out[:, :3, :3])
+    out[:, :3, :3] = out[:, :3, :3] @ M.T
+    return out, joints
 
 
 def _pnp(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -76,6 +76,10 @@ class PreprocessConfig:
         extend_passes: Passes of re-observing tracks against their seed frames (0: chained tracks only).
         shape_sigma: Weight of the ellipsoid prior in bundle adjustment (0: none).
         smooth_sigma: Temporal smoothing of the poses in frames.
+        pose_segment: Longest stretch of frames solved in one bundle adjustment; longer clips are
+            solved in overlapping segments joined by similarity alignment (the adjustment's cost
+            grows with the square of the frames, as every track is re-observed in all of them).
+        pose_overlap: Frames shared by consecutive segments.
     """
 
     parser: str = "classical"
@@ -90,6 +94,8 @@ class PreprocessConfig:
     extend_passes: int = 2
     shape_sigma: float = 0.0
     smooth_sigma: float = 0.0
+    pose_segment: int = 300
+    pose_overlap: int = 60
 
     def validate(self) -> None:
         """Raise :class:`PreprocessError` on impossible settings."""
@@ -114,6 +120,8 @@ class PreprocessConfig:
             raise PreprocessError(f"--face {self.face}: no shape predictor file there")
         if self.focal is not None and not self.focal > 0:
             raise PreprocessError(f"--focal must be positive; got {self.focal}")
+        if not 2 <= self.pose_overlap < self.pose_segment:
+            raise PreprocessError(f"pose_overlap must lie in [2, pose_segment); got {self.pose_overlap} and {self.pose_segment}")
         if not 0.0 < self.test_fraction < 0.5:
             raise PreprocessError(f"--test-fraction must lie in (0, 0.5); got {self.test_fraction}")
 
@@ -124,7 +132,7 @@ _STEP_KEYS = {
     "features": ("features",),
     "parse": ("parser", "min_face_fraction"),
     "face": ("face",),
-    "pose": ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "smooth_sigma"),
+    "pose": ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "smooth_sigma", "pose_segment", "pose_overlap"),
     "plate": (),
     "write": ("test_fraction",),
 }
@@ -311,17 +319,22 @@ def _intrinsics(config: PreprocessConfig, w: int, h: int) -> tuple[float, float,
     return (float(f), float(f), w / 2.0, h / 2.0)
 
 
-def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+def _segments(n: int, length: int, overlap: int) -> list[tuple[int, int]]:
+    """``(start, stop)`` of the overlapping segments the pose is solved in (one when ``n <= length``)."""
+    if n <= length:
+        return [(0, n)]
+    step = length - overlap
+    starts = list(range(0, n - length, step)) + [n - length]
+    return [(a, a + length) for a in starts]
+
+
+def _pose_segment(frames: np.ndarray, labels: np.ndarray, limits: np.ndarray | None, K: tuple[float, float, float, float], config: PreprocessConfig, bar: Bar, name: str) -> tuple:
+    """Tracks, bundle adjustment and re-observation passes on one segment of the clip."""
     from .headpose import estimate_head_poses
     from .tracking import TrackConfig, extend_tracks, track_points
 
-    frames, labels = work.load("frames"), work.load("parsing")
-    info = work.load_json("decode")
-    K = _intrinsics(config, info["width"], info["height"])
     track_cfg = TrackConfig(flow=config.flow)
-    # With landmarks, the rigid region never reaches below the nose base.
-    limits = work.load("landmarks")[:, NOSE_BASE, 1] if work.load_json("face")["backend"] != "none" else None
-    tracks = track_points(frames, labels, track_cfg, progress=lambda d, t: bar("pose: tracks", d, t), limits=limits)
+    tracks = track_points(frames, labels, track_cfg, progress=lambda d, t: bar(f"pose: tracks{name}", d, t), limits=limits)
     kw = dict(head_width=config.head_width, shape_sigma=config.shape_sigma)
     est = estimate_head_poses(tracks, labels, K, **kw)
     chained_obs = int(tracks.observed.sum())
@@ -332,21 +345,42 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
             return _pixels(X[idx] @ P[i, :3, :3].T + P[i, :3, 3], K)
 
         tracks = extend_tracks(frames, labels, tracks, predict, track_cfg, reach=len(frames), limits=limits)
-        est = estimate_head_poses(tracks, labels, K, **kw, smooth_sigma=config.smooth_sigma if k == config.extend_passes - 1 else 0.0)
-        bar("pose: adjust", k + 1, config.extend_passes)
-    work.save("poses", est.poses)
-    work.save("points", est.points)
+        est = estimate_head_poses(tracks, labels, K, **kw)
+        bar(f"pose: adjust{name}", k + 1, config.extend_passes)
+    return est, tracks, chained_obs
+
+
+def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+    from .headpose import chain_segments, smooth_poses
+
+    frames, labels = work.load("frames"), work.load("parsing")
+    info = work.load_json("decode")
+    K = _intrinsics(config, info["width"], info["height"])
+    # With landmarks, the rigid region never reaches below the nose base.
+    limits = work.load("landmarks")[:, NOSE_BASE, 1] if work.load_json("face")["backend"] != "none" else None
+    n = len(frames)
+    spans = _segments(n, config.pose_segment, config.pose_overlap)
+    results = []
+    for k, (a, b) in enumerate(spans):
+        name = "" if len(spans) == 1 else f" {k + 1}/{len(spans)}"
+        results.append(_pose_segment(frames[a:b], labels[a:b], None if limits is None else limits[a:b], K, config, bar, name))
+    poses, joints = chain_segments([(a, est.poses) for (a, _), (est, _, _) in zip(spans, results)], n)
+    poses = smooth_poses(poses, config.smooth_sigma)
+    work.save("poses", poses)
+    obs = np.array([int(tr.observed.sum()) for _, tr, _ in results], dtype=np.float64)
     doc = {
         "intrinsics": K,
-        "tracks": int(tracks.uv.shape[1]),
-        "observations_chained": chained_obs,
-        "observations": int(tracks.observed.sum()),
-        "reprojection_rms_px": est.rms,
-        "reprojection_median_px": est.median,
-        "reprojection_rms_initial_px": est.rms_before,
-        "inlier_fraction": est.inlier_fraction,
-        "ba_iterations": est.iterations,
-        "reference_frame": est.reference,
+        "segments": [[a, b] for a, b in spans],
+        "segment_joint_rotation_deg": joints,
+        "tracks": int(sum(tr.uv.shape[1] for _, tr, _ in results)),
+        "observations_chained": int(sum(c for _, _, c in results)),
+        "observations": int(obs.sum()),
+        "reprojection_rms_px": float(np.sqrt(np.sum(obs * np.array([est.rms for est, _, _ in results]) ** 2) / obs.sum())),
+        "reprojection_median_px": float(np.median([est.median for est, _, _ in results])),
+        "reprojection_rms_initial_px": float(np.sqrt(np.sum(obs * np.array([est.rms_before for est, _, _ in results]) ** 2) / obs.sum())),
+        "inlier_fraction": float(np.sum(obs * np.array([est.inlier_fraction for est, _, _ in results])) / obs.sum()),
+        "ba_iterations": int(max(est.iterations for est, _, _ in results)),
+        "reference_frame": int(results[0][0].reference),
     }
     work.save_json("pose", doc)
     return doc
