@@ -318,6 +318,7 @@ def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 
 
 def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     from adnerf.data import load_dataset
+    from adnerf.preprocess.headpose import project_points
 
     src = _adnerf_folder(scene, tmp_path / "obama", lms=True)
     out = tmp_path / "imported"
@@ -345,8 +346,7 @@ def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path
     lms = np.load(out / "landmarks.npy")
     assert lms.shape == (truth.meta.n_frames, 68, 2)
     def project(point: tuple, poses: np.ndarray, K: tuple) -> np.ndarray:
-        p = poses[:, :3, :3] @ np.array(point) + poses[:, :3, 3]
-        return np.stack([K[0] * p[:, 0] / p[:, 2] + K[2], K[1] * p[:, 1] / p[:, 2] + K[3]], 1)
+        return project_points(poses[:, :3, :3] @ np.array(point) + poses[:, :3, 3], K)
 
     err = np.linalg.norm(project(ds.meta.mouth, ds.poses, ds.meta.intrinsics) - project(truth.meta.mouth, truth.truth.poses, truth.meta.intrinsics), axis=1)
     assert err.max() < 0.1, err.max()

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data import load_dataset
-from .headpose import align_poses
+from .headpose import align_poses, project_points
 
 __all__ = ["align_poses", "parsing_iou", "check_preprocess", "BARS"]
 
@@ -43,8 +43,7 @@ def parsing_iou(pred: np.ndarray, true: np.ndarray, classes: tuple[int, ...] = (
 
 def _mouth_pixels(mouth: tuple[float, float, float], poses: np.ndarray, K: tuple[float, float, float, float]) -> np.ndarray:
     """``(N, 2)`` pixel positions of the canonical point ``mouth`` under ``poses``."""
-    p = poses[:, :3, :3] @ np.asarray(mouth, dtype=np.float64) + poses[:, :3, 3]
-    return np.stack([K[0] * p[:, 0] / p[:, 2] + K[2], K[1] * p[:, 1] / p[:, 2] + K[3]], 1)
+    return project_points(poses[:, :3, :3] @ np.asarray(mouth, dtype=np.float64) + poses[:, :3, 3], K)
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:

@@ -19,7 +19,7 @@ from ..data import LABEL_HEAD
 from .bundle import bundle_adjust, ellipsoid_points
 from .tracking import Tracks
 
-__all__ = ["HeadTrack", "head_boxes", "estimate_head_poses", "mean_rotation", "smooth_poses", "triangulate_canonical", "align_poses", "chain_segments"]
+__all__ = ["HeadTrack", "head_boxes", "estimate_head_poses", "mean_rotation", "smooth_poses", "triangulate_canonical", "align_poses", "chain_segments", "project_points"]
 
 
 @dataclass
@@ -98,6 +98,11 @@ def smooth_poses(poses: np.ndarray, sigma: float) -> np.ndarray:
     out[:, :3, :3] = np.stack([M @ cv2.Rodrigues(v)[0] for v in rel])
     out[:, :3, 3] = t
     return out
+
+
+def project_points(points: np.ndarray, K: tuple[float, float, float, float]) -> np.ndarray:
+    """Pixel positions ``(..., 2)`` (centre convention) of camera-frame points ``(..., 3)``."""
+    return np.stack([K[0] * points[..., 0] / points[..., 2] + K[2], K[1] * points[..., 1] / points[..., 2] + K[3]], -1)
 
 
 def align_poses(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:

@@ -42,6 +42,7 @@ __all__ = [
     "FaceTrackConfig",
     "FaceTrack",
     "track_faces",
+    "mouth_centres",
     "make_face_detector",
     "bundled_shape_predictor",
     "JAW",
@@ -137,7 +138,6 @@ class DlibFaceDetector:
         parts = self._predictor(np.zeros((16, 16, 3), np.uint8), dlib.rectangle(0, 0, 15, 15)).num_parts
         if parts != N_LANDMARKS:
             raise ValueError(f"{path}: a shape predictor with {parts} parts; the 68-point (iBUG 300-W) layout is needed")
-        self._rect = dlib.rectangle
         self.threshold = threshold
         self.name = "dlib" if predictor is None else f"dlib:{path}"
 
@@ -207,9 +207,10 @@ class FaceTrack:
     detected: np.ndarray
     scores: np.ndarray
 
-    def mouth_centres(self) -> np.ndarray:
-        """``(N, 2)`` centre of the inner lips in each frame (pixels)."""
-        return self.landmarks[:, INNER_LIPS].mean(1)
+
+def mouth_centres(landmarks: np.ndarray) -> np.ndarray:
+    """``(..., 2)`` centre of the inner lips of ``(..., 68, 2)`` landmarks (pixels)."""
+    return landmarks[..., INNER_LIPS, :].mean(-2)
 
 
 def _search_window(head: np.ndarray, h: int, w: int, config: FaceTrackConfig) -> tuple[int, int, int, float]:

@@ -11,9 +11,11 @@ settings changed):
 4. ``face``     face box and 68 landmarks per frame (:mod:`.landmarks`, dlib by default; searched
                 around the parsed head), failures interpolated and counted; a video whose face is
                 detected in too few frames is refused.
-5. ``pose``     point tracks on the rigid head (dense flow), bundle adjustment, re-observation of
-                every track against its seed frame, adjustment again (:mod:`.tracking`,
-                :mod:`.bundle`, :mod:`.headpose`).
+5. ``pose``     point tracks on the rigid head (dense flow; above the nose base when there are
+                landmarks), bundle adjustment, re-observation of every track against its seed
+                frame, adjustment again (:mod:`.tracking`, :mod:`.bundle`, :mod:`.headpose`);
+                clips longer than ``pose_segment`` frames in overlapping segments, joined by
+                similarity alignment (:func:`.headpose.chain_segments`).
 6. ``plate``    background plate (:mod:`.plate`).
 7. ``write``    bounds (the mouth point triangulated from the lip landmarks under the head
                 poses), splits, ``meta.json``, ``landmarks.npy``, the report
@@ -41,7 +43,8 @@ import numpy as np
 
 from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset, tail_split, write_wav
 from ..io import AudioTrack, MediaError, read_audio, read_video
-from .landmarks import INNER_LIPS, NOSE_BASE
+from .headpose import project_points
+from .landmarks import NOSE_BASE, mouth_centres
 
 __all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "STEPS"]
 
@@ -210,11 +213,6 @@ def _camera_motion(frames: np.ndarray, labels: np.ndarray, pairs: int = 8, gap: 
     return float(np.median(out)) if out else 0.0
 
 
-def _pixels(points: np.ndarray, K: tuple[float, float, float, float]) -> np.ndarray:
-    """Pixel positions ``(n, 2)`` (centre convention) of camera-frame points ``(n, 3)``."""
-    return np.stack([K[0] * points[:, 0] / points[:, 2] + K[2], K[1] * points[:, 1] / points[:, 2] + K[3]], 1)
-
-
 def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> None:
     v = read_video(video, audio=True)
     n, h, w = v.frames.shape[:3]
@@ -342,7 +340,7 @@ def _pose_segment(frames: np.ndarray, labels: np.ndarray, limits: np.ndarray | N
         P, X = est.poses, est.points
 
         def predict(i: int, idx: np.ndarray) -> np.ndarray:
-            return _pixels(X[idx] @ P[i, :3, :3].T + P[i, :3, 3], K)
+            return project_points(X[idx] @ P[i, :3, :3].T + P[i, :3, 3], K)
 
         tracks = extend_tracks(frames, labels, tracks, predict, track_cfg, reach=len(frames), limits=limits)
         est = estimate_head_poses(tracks, labels, K, **kw)
@@ -456,7 +454,7 @@ def _contact_sheet(
         over = labels[i] > 0
         img[over] = (0.55 * img[over] + 0.45 * colours[labels[i][over]]).astype(np.uint8)
         axes = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.6 * head_width
-        uv = _pixels(axes @ poses[i, :3, :3].T + poses[i, :3, 3], K)
+        uv = project_points(axes @ poses[i, :3, :3].T + poses[i, :3, 3], K)
         thick = max(1, img.shape[0] // 200)
         if landmarks is not None:
             for q in landmarks[i]:
@@ -476,7 +474,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
     n = len(frames)
     K = _intrinsics(config, info["width"], info["height"])
     landmarks = work.load("landmarks") if docs["face"]["backend"] != "none" else None
-    b = scene_bounds(labels, poses, K, config.head_width, None if landmarks is None else landmarks[:, INNER_LIPS].mean(1))
+    b = scene_bounds(labels, poses, K, config.head_width, None if landmarks is None else mouth_centres(landmarks))
     train, test = tail_split(n, config.test_fraction)
     meta = SceneMeta(
         fps=float(info["fps"]),
