@@ -300,7 +300,6 @@ def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> 
             f"{video}: the face detector ({detector.name}) found a face in only {found} of {n} frames ({found / n:.0%}); at least {config.min_face_fraction:.0%} are needed (or --face none)"
         )
     work.save("landmarks", track.landmarks)
-    work.save("face_boxes", track.boxes)
     doc = {
         "backend": detector.name,
         "detected": found,
@@ -310,6 +309,11 @@ def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> 
     }
     work.save_json("face", doc)
     return doc
+
+
+def _landmarks(work: _Work, config: PreprocessConfig) -> np.ndarray | None:
+    """The face step's ``(N, 68, 2)`` landmarks, ``None`` under ``--face none``."""
+    return None if config.face == "none" else work.load("landmarks")
 
 
 def _intrinsics(config: PreprocessConfig, w: int, h: int) -> tuple[float, float, float, float]:
@@ -355,7 +359,8 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
     info = work.load_json("decode")
     K = _intrinsics(config, info["width"], info["height"])
     # With landmarks, the rigid region never reaches below the nose base.
-    limits = work.load("landmarks")[:, NOSE_BASE, 1] if work.load_json("face")["backend"] != "none" else None
+    landmarks = _landmarks(work, config)
+    limits = None if landmarks is None else landmarks[:, NOSE_BASE, 1]
     n = len(frames)
     spans = _segments(n, config.pose_segment, config.pose_overlap)
     results = []
@@ -473,7 +478,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
     features = work.load("features")
     n = len(frames)
     K = _intrinsics(config, info["width"], info["height"])
-    landmarks = work.load("landmarks") if docs["face"]["backend"] != "none" else None
+    landmarks = _landmarks(work, config)
     b = scene_bounds(labels, poses, K, config.head_width, None if landmarks is None else mouth_centres(landmarks))
     train, test = tail_split(n, config.test_fraction)
     meta = SceneMeta(
