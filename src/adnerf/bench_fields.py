@@ -31,6 +31,7 @@ from typing import Sequence
 
 import torch
 
+from .allocator import tune_allocator
 from .data import SceneMeta, load_dataset
 from .synth import SynthConfig, synthesize
 from .talking_head import ModelConfig, layer_bounds, model_config, render_frame, render_part
@@ -251,7 +252,8 @@ def bench_fields(
         device: ``"cpu"`` or ``"cuda"``.
         seed: Seed of initialisation, sampling and the held-out rays.
         isolate: Run each configuration in a fresh process (honest peak memory, no shared
-            allocator state); off for tests.
+            allocator state; the process tunes its allocator as the ``adnerf`` command does,
+            see :mod:`adnerf.allocator`); off for tests.
         progress: Progress bars.
         synth_config: Overrides ``size`` and ``synth_seconds`` for the synthesised scene.
 
@@ -276,7 +278,8 @@ def bench_fields(
         for name in names:
             args = (str(dataset), by_name[name], budget, tuple(checkpoints), device, seed, progress)
             if isolate:
-                with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn")) as pool:
+                # The worker tunes the allocator as the adnerf command does (see adnerf.allocator).
+                with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"), initializer=tune_allocator) as pool:
                     rows.append(pool.submit(run_config, *args).result())
             else:
                 rows.append(run_config(*args))

@@ -438,6 +438,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``adnerf`` command; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    from .allocator import tune_allocator
+
+    tune_allocator()  # keeps freed tensor memory for reuse: fewer page faults (ADNERF_TUNE_MALLOC=0: off)
     try:
         return int(args.func(args))
     except _user_errors() as exc:

@@ -1,0 +1,68 @@
+"""Allocator tuning: it must cut the page faults of a renderer-like allocation pattern, stay off
+when asked, and be applied by the ``adnerf`` command."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+import adnerf.allocator as allocator
+from adnerf.allocator import ENV_VAR, _glibc, tune_allocator
+from adnerf.cli import main
+
+# A renderer's chunk: a few layers' activations of a varying packed batch live at once (here
+# about 100 MB), all freed at the end of the chunk. Prints whether tuning applied and the minor
+# page faults of the chunks after the first (which finds fresh memory either way).
+_WORKLOAD = """
+import resource, torch
+from adnerf.allocator import tune_allocator
+ok = tune_allocator()
+g = torch.Generator().manual_seed(0)
+w = torch.ones(96, 64)
+for i in range(31):
+    if i == 1:
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    live = []
+    for _ in range(6):
+        n = int(torch.randint(40000, 60000, (1,), generator=g))
+        live.append(torch.ones(n, 96))
+        live.append(torch.relu(live[-1] @ w))
+    del live
+print(ok, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def _run_workload(tune: bool) -> tuple[bool, int]:
+    env = {**os.environ, ENV_VAR: "1" if tune else "0", "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", _WORKLOAD], capture_output=True, text=True, env=env, check=True).stdout.split()
+    return out[0] == "True", int(out[1])
+
+
+@pytest.mark.skipif(_glibc() is None, reason="allocator tuning applies to glibc only")
+def test_tuning_cuts_page_faults_of_varying_batches() -> None:
+    tuned_ok, tuned = _run_workload(tune=True)
+    off_ok, off = _run_workload(tune=False)
+    assert tuned_ok and not off_ok
+    # Measured here: 0.16 to 1.5 M faults untuned (it depends on where the heap lands) against
+    # 7 to 15 k tuned.
+    assert tuned * 5 < off, (tuned, off)
+
+
+def test_opt_out_and_bad_values(monkeypatch: pytest.MonkeyPatch) -> None:
+    for value in ("0", "off", "False"):
+        monkeypatch.setenv(ENV_VAR, value)
+        assert tune_allocator() is False
+    monkeypatch.setenv(ENV_VAR, "1")
+    with pytest.raises(ValueError):
+        tune_allocator(mmap_threshold=-1)
+    assert tune_allocator(mmap_threshold=2**40) is False  # beyond mallopt's int: refused, not wrapped
+
+
+def test_the_command_tunes_the_allocator(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    calls = []
+    monkeypatch.setattr(allocator, "tune_allocator", lambda: calls.append(1) or True)
+    assert main(["bench", "render", "--samples", "4", "--size", "8", "--repeats", "1"]) == 0
+    assert calls == [1]
