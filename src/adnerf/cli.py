@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+import warnings
+from pathlib import Path
 from typing import Sequence
 
 __all__ = ["main"]
@@ -31,6 +34,42 @@ def _positive_list(cast: type, what: str):
 
 _positive_int_list = _positive_list(int, "integers")
 _positive_float_list = _positive_list(float, "numbers")
+
+
+def _number(cast: type, lo: float | None = None, hi: float | None = None, *, open_lo: bool = False):
+    """An argparse type: a finite ``cast`` (int or float) in ``[lo, hi]`` (``(lo, hi]`` with ``open_lo``)."""
+
+    def parse(text: str):
+        try:
+            value = cast(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if cast is int else 'a number'}, got {text!r}") from exc
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+        if lo is not None and (value <= lo if open_lo else value < lo):
+            raise argparse.ArgumentTypeError(f"must be {'>' if open_lo else '>='} {lo:g}; got {text}")
+        if hi is not None and value > hi:
+            raise argparse.ArgumentTypeError(f"must be <= {hi:g}; got {text}")
+        return value
+
+    parse.__name__ = "integer" if cast is int else "number"  # argparse names the type in its message
+    return parse
+
+
+_finite = _number(float)
+_positive = _number(float, 0.0, open_lo=True)
+_count = _number(int, 0)
+_fraction = _number(float, 0.0, 1.0, open_lo=True)
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Help lines end with the option's default (where it has a meaningful one)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "%(default)" in text or "default" in text or any(action.default is v for v in (None, False, argparse.SUPPRESS)) or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)"
 
 
 def _device(name: str) -> str:
@@ -109,19 +148,21 @@ def _cmd_features(args: argparse.Namespace) -> int:
 
     from .features import MODEL_RATE, FeatureError, FeatureSpec, save_npy_atomic, speech_windows
     from .io import MediaError, frame_times, probe, read_audio
+    from .outputs import check_file_output
 
     media, out = Path(args.media), Path(args.output)
     if out.suffix != ".npy":
         raise CliError(f"{out}: the output must be a .npy file")
+    check_file_output(out, inputs=[media], overwrite=args.overwrite)
     try:
         audio = read_audio(media)  # raises "has no audio track" itself
+        if len(audio.samples) == 0:
+            raise CliError(f"{media}: the audio track holds no samples")
         if args.fps is None and probe(media)["video"]:
             times = frame_times(media)
             source = "video timestamps"
         else:
-            fps = args.fps or 25.0
-            if fps <= 0:
-                raise CliError(f"--fps must be positive; got {fps}")
+            fps = 25.0 if args.fps is None else args.fps
             times = np.arange(max(1, math.ceil(audio.duration * fps))) / fps + audio.start
             source = f"{fps:g} fps"
         with tqdm(total=round(audio.duration, 1), unit="s", desc=f"{args.kind} features", disable=audio.duration < 30 or None) as bar:
@@ -139,16 +180,18 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from .data import DatasetError
     from .features import FeatureError
     from .io import MediaError
+    from .outputs import OutputError
     from .render_video import RenderError
     from .preprocess.pipeline import PreprocessError
     from .train import RunError
 
-    return (DatasetError, FeatureError, MediaError, PreprocessError, RenderError, RunError)
+    return (DatasetError, FeatureError, MediaError, OutputError, PreprocessError, RenderError, RunError)
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from .outputs import check_folder_output
     from .synth import SynthConfig, synthesize
 
     cfg = SynthConfig(seconds=args.seconds, size=args.size, seed=args.seed, voice=args.voice, features=args.features, fps=args.fps)
@@ -156,6 +199,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         cfg.validate()
     except ValueError as exc:
         raise CliError(str(exc)) from exc
+    check_folder_output(args.output, "dataset", overwrite=args.overwrite)  # before the progress bar
     with tqdm(total=cfg.n_frames, desc="synth frames", unit="frame") as bar:
         out = synthesize(args.output, cfg, progress=lambda step, done, total: bar.update(done - bar.n), overwrite=args.overwrite)
     print(f"{out}: synthetic talking head, {cfg.seconds:g} s at {cfg.fps:g} fps, {cfg.size}x{cfg.size}")
@@ -198,41 +242,49 @@ def _cmd_check_preprocess(args: argparse.Namespace) -> int:
 
 
 def _train_config(args: argparse.Namespace):
-    from .train import TrainConfig
+    """The schedule: ``--config`` keys, then ``--amp`` and ``--iters``, over the defaults (a new
+    run) or over the run's stored schedule (``--resume``), so a resume changes only what is given."""
+    from .train import RunError, TrainConfig, stored_config
 
-    doc: dict = {}
+    doc: object = {}
     if args.config:
         try:
             doc = json.loads(open(args.config).read())
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise CliError(f"{args.config}: not a readable JSON training config ({exc})") from exc
+        if not isinstance(doc, dict):
+            raise CliError(f"{args.config}: a training config is a JSON object of TrainConfig fields (e.g. {{\"rays\": 2048}}); got a {type(doc).__name__}")
+    doc = dict(doc)  # type: ignore[arg-type]
     if getattr(args, "amp", None):
         doc["amp"] = args.amp
+    base = TrainConfig()
+    if args.resume:
+        if not (Path(args.output) / "run.json").exists():
+            raise RunError(f"{args.output}: nothing to resume (no run.json); drop --resume to start a new run")
+        base = stored_config(args.output)
     if args.iters is not None:
         if args.stage in ("head", "all"):
             doc["head_iters"] = args.iters
         if args.stage in ("torso", "all"):
             doc["torso_iters"] = args.iters if args.stage == "torso" else args.iters // 2
     try:
-        cfg = TrainConfig.from_dict(doc)
+        cfg = TrainConfig.from_dict(doc, base)
         cfg.validate()
     except (TypeError, ValueError) as exc:
         raise CliError(f"invalid training config: {exc}") from exc
-    return cfg, bool(doc)
+    return cfg
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .train import train
 
-    cfg, given = _train_config(args)
-    root = train(args.dataset, args.output, stage=args.stage, config=cfg if (given or not args.resume) else None, device=_device(args.device), resume=args.resume)
+    cfg = _train_config(args)
+    root = train(args.dataset, args.output, stage=args.stage, config=cfg, device=_device(args.device), resume=args.resume)
     print(f"{root}: trained ({args.stage}); render with `adnerf render {root} --audio SPEECH -o out.mp4`")
     return 0
 
 
 def _cmd_import_adnerf(args: argparse.Namespace) -> int:
-    import warnings
-
     from tqdm import tqdm
 
     from .preprocess.adnerf_import import import_adnerf
@@ -258,18 +310,22 @@ def _cmd_import_adnerf(args: argparse.Namespace) -> int:
 def _cmd_render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .render_video import render_audio_video
+    from .render_video import check_render_outputs, render_audio_video
     from .train import load_run
 
     if not args.output.endswith(".mp4"):
         raise CliError(f"{args.output}: the output must be an .mp4 file")
+    inputs = [args.audio, args.poses, args.features, args.background]
+    check_render_outputs(args.output, args.frames, inputs=inputs, overwrite=args.overwrite)  # before loading and rendering
     run = load_run(args.run, _device(args.device))
-    with tqdm(desc="render", unit="frame") as bar:
+    bars: list[tqdm] = []  # opened at the first frame, so a refused input prints no bar
 
-        def tick(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
+    def tick(done: int, total: int) -> None:
+        if not bars:
+            bars.append(tqdm(total=total, desc="render", unit="frame"))
+        bars[0].update(done - bars[0].n)
 
+    try:
         summary = render_audio_video(
             run,
             args.audio,
@@ -282,8 +338,12 @@ def _cmd_render(args: argparse.Namespace) -> int:
             background=args.background,
             features=args.features,
             frames_dir=args.frames,
+            overwrite=args.overwrite,
             progress=tick,
         )
+    finally:
+        for bar in bars:
+            bar.close()
     print(f"{summary['output']}: {summary['frames']} frames, {summary['audio_seconds']:.2f} s, rendered at {summary['render_fps']:.2f} frames/s")
     return 0
 
@@ -306,35 +366,51 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
+    from .outputs import OutputError
 
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: is a file, not a folder; give a folder for the demo")
     metrics = run_demo(args.output, device=_device(args.device))
     keys = ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "train_seconds", "render_fps", "total_seconds")
     print(json.dumps({k: metrics[k] for k in keys}, indent=1))
     return 0
 
 
+def _with_formatter(add_parser):
+    """Wrap a subparsers' ``add_parser`` so every subcommand's help shows defaults."""
+
+    def add(*args, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        return add_parser(*args, **kwargs)
+
+    return add
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``adnerf`` command."""
-    parser = argparse.ArgumentParser(prog="adnerf", description="Audio-driven neural radiance fields for talking heads.")
+    parser = argparse.ArgumentParser(prog="adnerf", description="Audio-driven neural radiance fields for talking heads.", formatter_class=_HelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser = _with_formatter(sub.add_parser)  # type: ignore[method-assign]
 
     bench = sub.add_parser("bench", help="benchmarks: error against run time")
     bench_sub = bench.add_subparsers(dest="bench_command", required=True)
+    bench_sub.add_parser = _with_formatter(bench_sub.add_parser)  # type: ignore[method-assign]
     render = bench_sub.add_parser("render", help="quadrature error of rendering an analytic sphere vs samples per ray, and time")
     render.add_argument("--json", action="store_true", help="print one JSON line per configuration (the table goes to stderr)")
     render.add_argument("--samples", type=_positive_int_list, default=(8, 16, 32, 64, 128, 256), help="comma-separated samples per ray")
-    render.add_argument("--size", type=int, default=128, help="image side in pixels (default 128)")
-    render.add_argument("--repeats", type=int, default=3, help="timed repeats; the best is reported")
+    render.add_argument("--size", type=_number(int, 1, 4096), default=128, help="image side in pixels, 1 to 4096")
+    render.add_argument("--repeats", type=_number(int, 1), default=3, help="timed repeats (>= 1); the best is reported")
     render.add_argument("--device", default="cpu", help="cpu or cuda")
     render.add_argument("--dtype", default="float32", choices=("float32", "float64"))
-    render.add_argument("--sigma", type=float, default=10.0, help="density of the analytic sphere (default 10: surface-like)")
+    render.add_argument("--sigma", type=_positive, default=10.0, help="density of the analytic sphere (> 0; 10 is surface-like)")
     render.set_defaults(func=_cmd_bench_render)
     fields = bench_sub.add_parser("fields", help="held-out PSNR against training time per field configuration (paper MLP, fast grids, skipping, fine pass)")
     fields.add_argument("--dataset", default=None, help="dataset folder (default: synthesise the built-in scene at --size)")
     fields.add_argument("--configs", default=None, help="comma-separated: paper, fast, fast-no-skip, fast-coarse-only (default: all)")
-    fields.add_argument("--budget", type=float, default=300.0, help="seconds of training per configuration (default 300)")
+    fields.add_argument("--budget", type=_positive, default=300.0, help="seconds of training per configuration (> 0)")
     fields.add_argument("--checkpoints", type=_positive_float_list, default=(5, 10, 20, 30, 60, 120, 300), help="training times (s) to measure PSNR at")
-    fields.add_argument("--size", type=int, default=128, help="frame size of the synthesised scene (default 128)")
+    fields.add_argument("--size", type=_number(int, 16, 1024), default=128, help="frame size of the synthesised scene, 16 to 1024")
     fields.add_argument("--device", default="cpu", help="cpu or cuda")
     fields.add_argument("--seed", type=int, default=0)
     fields.add_argument("--plot", default=None, help="write a PNG of PSNR against training time")
@@ -342,8 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
     fields.set_defaults(func=_cmd_bench_fields)
     fbench = bench_sub.add_parser("features", help="speech feature extraction speed (seconds of audio per second)")
     fbench.add_argument("--media", default=None, help="audio/video file to use (default: 60 s of synthetic voiced audio)")
-    fbench.add_argument("--seconds", type=float, default=60.0, help="length of the synthetic audio")
-    fbench.add_argument("--repeats", type=int, default=2)
+    fbench.add_argument("--seconds", type=_number(float, 1.0, 3600.0), default=60.0, help="length of the synthetic audio, 1 to 3600 s")
+    fbench.add_argument("--repeats", type=_number(int, 1), default=2, help="timed repeats (>= 1)")
     fbench.add_argument("--json", action="store_true", help="JSON lines on stdout, table on stderr")
     fbench.set_defaults(func=_cmd_bench_features)
 
@@ -352,7 +428,8 @@ def build_parser() -> argparse.ArgumentParser:
     feats.add_argument("-o", "--output", required=True, help="output .npy file")
     feats.add_argument("--kind", choices=("phonemes", "logmel", "wav2vec2"), default="phonemes", help="extractor (default: phonemes, hama's IPA log-probs)")
     feats.add_argument("--model-dir", default=None, help="local wav2vec2 / HuBERT model directory for --kind wav2vec2")
-    feats.add_argument("--fps", type=float, default=None, help="frame rate for audio-only input (default 25); overrides a video's timestamps")
+    feats.add_argument("--fps", type=_positive, default=None, help="frame rate (> 0) for audio-only input (default 25); overrides a video's timestamps")
+    feats.add_argument("--overwrite", action="store_true", help="replace an existing output file (never an input)")
     feats.set_defaults(func=_cmd_features)
 
     demo = sub.add_parser("demo", help="synthesise a talking head, train, render held-out audio three ways, evaluate")
@@ -362,13 +439,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     synth = sub.add_parser("synth", help="create a synthetic talking-head dataset with exact ground truth")
     synth.add_argument("-o", "--output", required=True, help="dataset folder to create")
-    synth.add_argument("--seconds", type=float, default=18.0)
-    synth.add_argument("--size", type=int, default=128, help="frame width and height in pixels")
-    synth.add_argument("--fps", type=float, default=25.0)
-    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--seconds", type=_number(float, 1.0, 600.0), default=18.0, help="length of the scene, 1 to 600 s")
+    synth.add_argument("--size", type=_number(int, 16, 1024), default=128, help="frame width and height in pixels, 16 to 1024")
+    synth.add_argument("--fps", type=_number(float, 1.0, 120.0), default=25.0, help="frame rate, 1 to 120")
+    synth.add_argument("--seed", type=_number(int, 0), default=0, help="random seed of the pose track and the speech (>= 0)")
     synth.add_argument("--voice", choices=("auto", "formant", "espeak"), default="auto", help="speech source (auto: espeak-ng when installed)")
     synth.add_argument("--features", choices=("logmel", "phonemes"), default="logmel", help="audio features stored with the dataset")
-    synth.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+    synth.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder)")
     synth.set_defaults(func=_cmd_synth)
 
     pre = sub.add_parser("preprocess", help="turn a static-camera talking-head video into a dataset (parsing, head pose, plate)")
@@ -378,17 +455,17 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--features", choices=("logmel", "phonemes", "none"), default="logmel", help="audio features (none: silent dataset, allowed without audio)")
     pre.add_argument("--face", default="dlib", help="face box and 68 landmarks: dlib (default; HOG detector and the 68-point model of the face-recognition-models package), dlib:PREDICTOR.dat (your own 68-point model) or none")
     pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
-    pre.add_argument("--focal", type=float, default=None, help="focal length in pixels (default 1.33 x the larger frame side)")
-    pre.add_argument("--test-fraction", type=float, default=0.1, help="fraction of frames at the end held out for testing")
-    pre.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    pre.add_argument("--focal", type=_positive, default=None, help="focal length in pixels, > 0 (default 1.33 x the larger frame side)")
+    pre.add_argument("--test-fraction", type=_number(float, 0.0, 0.9, open_lo=True), default=0.1, help="fraction of frames at the end held out for testing, in (0, 0.9]")
+    pre.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the video)")
     pre.set_defaults(func=_cmd_preprocess)
 
     imp = sub.add_parser("import-adnerf", help="convert a dataset preprocessed by the original AD-NeRF code into an adnerf dataset")
     imp.add_argument("source", help="AD-NeRF dataset folder (transforms_train.json, ori_imgs/, parsing/, bc.jpg, aud.npy, aud.wav)")
     imp.add_argument("-o", "--output", required=True, help="dataset folder to create")
-    imp.add_argument("--fps", type=float, default=25.0, help="frame rate of the original video (default 25, as AD-NeRF assumes)")
+    imp.add_argument("--fps", type=_positive, default=25.0, help="frame rate of the original video (> 0; AD-NeRF assumes 25)")
     imp.add_argument("--audio", default=None, help="the original audio (default SOURCE/aud.wav)")
-    imp.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    imp.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the source)")
     imp.set_defaults(func=_cmd_import_adnerf)
 
     chk = sub.add_parser("check-preprocess", help="compare a preprocessed synthetic video with the scene's truth (pose, parsing, plate)")
@@ -400,12 +477,12 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="train the head (stage 1) and torso (stage 2) fields on a dataset")
     tr.add_argument("dataset", help="dataset folder")
     tr.add_argument("-o", "--output", required=True, help="run folder")
-    tr.add_argument("--stage", choices=("head", "torso", "all"), default="all")
-    tr.add_argument("--iters", type=int, default=None, help="iterations of the stage (with all: head; the torso gets half)")
+    tr.add_argument("--stage", choices=("head", "torso", "all"), default="all", help="head (stage 1), torso (stage 2; needs a finished head stage and --resume) or all")
+    tr.add_argument("--iters", type=_count, default=None, help="iterations of the stage, >= 0 (with all: head; the torso gets half); with --resume, trains the run longer")
     tr.add_argument("--amp", choices=("auto", "bf16", "off"), default=None, help="mixed precision of the fields (default auto: bfloat16 on CUDA, off on CPU)")
     tr.add_argument("--device", default="cpu", help="cpu or cuda")
-    tr.add_argument("--config", default=None, help="JSON file of TrainConfig fields (e.g. {\"rays\": 2048, \"preset\": \"paper\"})")
-    tr.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
+    tr.add_argument("--config", default=None, help="JSON file of TrainConfig fields (e.g. {\"rays\": 2048, \"preset\": \"paper\"}); with --resume only head_iters, torso_iters, amp, checkpoint_every and log_every may differ from the run's")
+    tr.add_argument("--resume", action="store_true", help="continue from the run's checkpoint, with its stored config, on the same dataset")
     tr.set_defaults(func=_cmd_train)
 
     rn = sub.add_parser("render", help="render a trained run saying new audio, as an mp4 with that audio")
@@ -414,12 +491,13 @@ def build_parser() -> argparse.ArgumentParser:
     poses = rn.add_mutually_exclusive_group()
     poses.add_argument("--poses", default=None, help=".npy of (N, 4, 4) head poses, one per output frame")
     poses.add_argument("--from", dest="from_dataset", default=None, help="take the pose track of this dataset (played back and forth)")
-    rn.add_argument("--yaw", type=float, default=0.0, help="degrees added about the head's vertical axis")
-    rn.add_argument("--pitch", type=float, default=0.0, help="degrees added about the horizontal axis")
-    rn.add_argument("--roll", type=float, default=0.0, help="degrees added about the viewing axis")
+    rn.add_argument("--yaw", type=_number(float, -180.0, 180.0), default=0.0, help="degrees added about the head's vertical axis, -180 to 180")
+    rn.add_argument("--pitch", type=_number(float, -180.0, 180.0), default=0.0, help="degrees added about the horizontal axis, -180 to 180")
+    rn.add_argument("--roll", type=_number(float, -180.0, 180.0), default=0.0, help="degrees added about the viewing axis, -180 to 180")
     rn.add_argument("--features", default=None, help=".npy of precomputed feature windows (M, 16, D) for the audio, one per frame (e.g. AD-NeRF's DeepSpeech aud.npy); required for runs trained on imported DeepSpeech features")
     rn.add_argument("--background", default=None, help="replacement background image")
-    rn.add_argument("--frames", default=None, help="also write the frames as PNGs into this folder")
+    rn.add_argument("--frames", default=None, help="also write the frames as PNGs (000000.png, ...) into this folder; never inside a dataset or run")
+    rn.add_argument("--overwrite", action="store_true", help="replace an existing output .mp4 and existing frame PNGs (never an input)")
     rn.add_argument("--device", default="cpu", help="cpu or cuda")
     rn.add_argument("-o", "--output", required=True, help="output .mp4")
     rn.set_defaults(func=_cmd_render)
@@ -437,12 +515,17 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``adnerf`` command; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: a refused argument (2, message printed) or --help (0)
+        return int(exc.code or 0)
     from .allocator import tune_allocator
 
     tune_allocator()  # keeps freed tensor memory for reuse: fewer page faults (ADNERF_TUNE_MALLOC=0: off)
     try:
-        return int(args.func(args))
+        with warnings.catch_warnings():
+            warnings.showwarning = lambda message, *rest, **kw: print(f"adnerf: warning: {message}", file=sys.stderr)
+            return int(args.func(args))
     except _user_errors() as exc:
         print(f"adnerf: error: {exc}", file=sys.stderr)
         return 2

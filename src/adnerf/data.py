@@ -27,6 +27,7 @@ and renamed into place, so a folder that exists is complete.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -40,9 +41,10 @@ import torch
 
 from .cameras import Camera, intrinsics_matrix
 from .io import AudioTrack, MediaError, read_audio
+from .outputs import check_folder_output
 from .pose import HeadPose
 
-__all__ = ["FORMAT", "VERSION", "DatasetError", "SceneMeta", "Truth", "TalkingHeadDataset", "load_dataset", "save_dataset"]
+__all__ = ["FORMAT", "VERSION", "DatasetError", "check_poses", "SceneMeta", "Truth", "TalkingHeadDataset", "load_dataset", "save_dataset"]
 
 FORMAT = "adnerf-dataset"
 VERSION = 1
@@ -171,6 +173,16 @@ class TalkingHeadDataset:
     audio: AudioTrack
     truth: Truth | None = field(default=None, repr=False)
 
+    def fingerprint(self) -> str:
+        """SHA-256 of the dataset's content (metadata, frames, parsing, plate, poses, features,
+        audio): equal for the same data wherever the folder lies, different after any change."""
+        h = hashlib.sha256(json.dumps(asdict(self.meta), sort_keys=True).encode())
+        for arr in (self.frames, self.parsing, self.background, self.poses, self.features, self.audio.samples):
+            a = np.ascontiguousarray(arr)
+            h.update(f"{a.dtype}{a.shape}".encode())
+            h.update(a.data)
+        return h.hexdigest()
+
     def head_pose(self, index: int | Sequence[int] | np.ndarray, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> HeadPose:
         """The head pose(s) of frame(s) ``index`` as a :class:`HeadPose`."""
         return HeadPose.from_matrix(torch.as_tensor(self.poses[index], dtype=dtype, device=device))
@@ -217,6 +229,7 @@ def save_dataset(
     truth: Truth | None = None,
     extra: Callable[[Path], None] | None = None,
     overwrite: bool = False,
+    inputs: Sequence[str | Path] = (),
 ) -> Path:
     """Write a dataset folder atomically (a temporary sibling renamed into place).
 
@@ -231,14 +244,19 @@ def save_dataset(
         audio: Audio whose sample 0 plays with frame 0.
         truth: Exact quantities of a synthetic scene.
         extra: Called with the temporary folder to add more files (e.g. an mp4) before the rename.
-        overwrite: Replace an existing folder.
+        overwrite: Replace an existing adnerf dataset there (never another folder: see
+            :func:`adnerf.outputs.check_folder_output`).
+        inputs: The writing command's input files; a folder holding one is never replaced.
 
     Returns:
         The dataset folder.
+
+    Raises:
+        adnerf.outputs.OutputError: ``root`` must not be written (see :mod:`adnerf.outputs`).
+        DatasetError: Inconsistent metadata or arrays.
     """
     root = Path(root)
-    if root.exists() and not overwrite:
-        raise DatasetError(f"{root}: already exists (choose another folder or remove it)")
+    check_folder_output(root, "dataset", inputs=inputs, overwrite=overwrite)
     meta.validate()
     _check_arrays(meta, frames, parsing, background, poses, features, str(root))
     tmp = root.with_name(f".{root.name}.tmp{os.getpid()}")
@@ -286,14 +304,29 @@ def _check_arrays(meta: SceneMeta, frames: np.ndarray, parsing: np.ndarray, back
         raise DatasetError(f"{where}: features have shape {tuple(features.shape)}; expected ({n}, 16, {meta.feature_dim})")
     if parsing.size and int(parsing.max()) > LABEL_TORSO:
         raise DatasetError(f"{where}: parsing labels must be 0 (background), 1 (head) or 2 (torso)")
-    if not np.all(np.isfinite(poses)) or not np.allclose(poses[:, 3], [0, 0, 0, 1]):
-        raise DatasetError(f"{where}: poses must be finite rigid 4x4 matrices with last row (0, 0, 0, 1)")
-    rot = poses[:, :3, :3]
-    err = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max() if n else 0.0
-    if err > 1e-4:
-        raise DatasetError(f"{where}: pose rotations are not orthonormal (max |R R^T - I| = {err:.2e})")
+    check_poses(poses, where)
     if not np.all(np.isfinite(features)):
         raise DatasetError(f"{where}: features contain NaN or inf")
+
+
+def check_poses(poses: np.ndarray, where: str) -> None:
+    """Raise :class:`DatasetError` unless ``poses (N, 4, 4)`` are finite rigid motions: last row
+    ``(0, 0, 0, 1)``, orthonormal rotations (``|R R^T - I| <= 1e-4``) and ``det R = +1`` (a
+    reflection would mirror the head)."""
+    poses = np.asarray(poses)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise DatasetError(f"{where}: poses must have shape (N, 4, 4); got {poses.shape}")
+    if not np.all(np.isfinite(poses)) or not np.allclose(poses[:, 3], [0, 0, 0, 1]):
+        raise DatasetError(f"{where}: poses must be finite rigid 4x4 matrices with last row (0, 0, 0, 1)")
+    if not len(poses):
+        return
+    rot = poses[:, :3, :3]
+    err = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max()
+    if err > 1e-4:
+        raise DatasetError(f"{where}: pose rotations are not orthonormal (max |R R^T - I| = {err:.2e})")
+    det = np.linalg.det(rot)
+    if np.any(det < 0):
+        raise DatasetError(f"{where}: {int(np.sum(det < 0))} pose rotation(s) have det -1 (a mirror image, not a rotation), first at frame {int(np.argmax(det < 0))}")
 
 
 def read_meta(root: str | Path) -> SceneMeta:

@@ -11,13 +11,14 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import torch
 from kornia.metrics import psnr, ssim
 
-from .data import MOUTH_CROP, TalkingHeadDataset
+from .data import MOUTH_CROP, DatasetError, TalkingHeadDataset
 from .render_video import RenderedClip, render_frames
 from .train import Run
 
@@ -97,10 +98,28 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip)
     return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in out.items()}
 
 
+# What a dataset must share with a run's training data to be evaluated against it.
+_SAME_SCENE = ("width", "height", "intrinsics", "fps", "feature_kind", "feature_dim")
+
+
+def check_matches_run(run: Run, ds: TalkingHeadDataset) -> None:
+    """Raise :class:`~adnerf.data.DatasetError` unless ``ds`` has the camera (size, intrinsics),
+    frame rate and audio features the run was trained with."""
+    found = {k: getattr(ds.meta, k) for k in _SAME_SCENE}
+    differ = [f"{k} {run.meta[k]!r} vs {found[k]!r}" for k in _SAME_SCENE if json.loads(json.dumps(found[k])) != run.meta.get(k)]
+    if differ:
+        raise DatasetError(f"{ds.root} does not match the run's training data ({'; '.join(differ)}); evaluate a run on a dataset of its own camera, frame rate and features")
+
+
 def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test") -> tuple[dict, RenderedClip]:
-    """Render a split with its own poses and audio windows and measure it (see the module docs)."""
+    """Render a split with its own poses and audio windows and measure it (see the module docs).
+
+    Raises:
+        DatasetError: ``ds`` has another camera, frame rate or feature kind than the run's data.
+    """
     if split not in ("train", "test"):
         raise ValueError(f"split must be train or test; got {split!r}")
+    check_matches_run(run, ds)
     frames = list(getattr(ds.meta, split))
     if not frames:
         raise ValueError(f"the dataset's {split} split is empty")

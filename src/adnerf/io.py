@@ -17,13 +17,13 @@ Every failure raises :class:`MediaError` naming the file and the problem.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
+
+from .atomic import atomic_path
 
 __all__ = ["AudioTrack", "MediaError", "Video", "frame_times", "probe", "read_audio", "read_video", "write_video"]
 
@@ -274,12 +274,9 @@ def write_video(
         audio = np.asarray(audio, dtype=np.float32).reshape(-1)
         if not sample_rate or sample_rate <= 0:
             raise MediaError(f"{out}: audio given without a positive sample_rate")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(suffix=".mp4", prefix=f".{out.stem}.", dir=out.parent)
-    os.close(fd)
     rate = Fraction(fps).limit_denominator(1001)
     try:
-        with av.open(tmp_name, "w", format="mp4") as container:
+        with atomic_path(out) as tmp, av.open(str(tmp), "w", format="mp4") as container:
             v = container.add_stream("libx264", rate=rate)
             v.width, v.height = frames.shape[2], frames.shape[1]
             v.pix_fmt = "yuv420p"
@@ -303,10 +300,8 @@ def write_video(
                     af.time_base = Fraction(1, int(sample_rate))
                     container.mux(a.encode(af))
                 container.mux(a.encode())
-        os.replace(tmp_name, out)
+    except MediaError:
+        raise
     except Exception as exc:
-        Path(tmp_name).unlink(missing_ok=True)
-        if isinstance(exc, MediaError):
-            raise
         raise MediaError(f"{out}: writing the video failed ({exc})") from exc
     return out

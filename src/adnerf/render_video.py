@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -19,14 +20,15 @@ import cv2
 import numpy as np
 import torch
 
-from .data import SceneMeta
+from .data import DatasetError, SceneMeta, check_poses
 from .features import FEATURE_KINDS, FeatureSpec, load_npy_windows, speech_windows
 from .io import AudioTrack, MediaError, read_audio, write_video
+from .outputs import check_file_output, check_frames_folder
 from .pose import HeadPose
 from .talking_head import FrameRender, render_frame
 from .train import Run
 
-__all__ = ["RenderError", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
+__all__ = ["RenderError", "check_render_outputs", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
 
 MODEL_RATE = 16000
 
@@ -89,7 +91,31 @@ def load_poses(path: str | Path, n: int) -> np.ndarray:
         raise RenderError(f"{p}: poses must have shape (N, 4, 4); got {poses.shape}")
     if len(poses) != n:
         raise RenderError(f"{p}: has {len(poses)} poses but the audio gives {n} frames at this fps; give one pose per frame")
-    return poses.astype(np.float64)
+    return _checked_poses(poses.astype(np.float64), str(p))
+
+
+def _checked_poses(poses: np.ndarray, where: str) -> np.ndarray:
+    """``poses`` after the dataset loader's rigidity checks (:func:`adnerf.data.check_poses`)."""
+    try:
+        check_poses(poses, where)
+    except DatasetError as exc:
+        raise RenderError(str(exc)) from exc
+    return poses
+
+
+def frame_names(n: int) -> list[str]:
+    """The names of ``n`` frame images written by ``--frames``: ``000000.png``, ..."""
+    return [f"{i:06d}.png" for i in range(n)]
+
+
+def check_render_outputs(out: str | Path, frames_dir: str | Path | None, *, inputs: list, overwrite: bool = False) -> None:
+    """Refuse outputs a render must not write, before any rendering (see :mod:`adnerf.outputs`):
+    an ``out`` that is an input or an existing file without ``overwrite``, and a ``frames_dir``
+    inside a dataset or run or already holding frame images (``NNNNNN.png``) without ``overwrite``.
+    """
+    check_file_output(out, inputs=inputs, overwrite=overwrite)
+    if frames_dir is not None:
+        check_frames_folder(frames_dir, overwrite=overwrite)
 
 
 @dataclass
@@ -137,6 +163,9 @@ def render_frames(
     meta = run.meta
     if len(poses) != len(windows):
         raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
+    if not all(math.isfinite(a) for a in (yaw, pitch, roll)):
+        raise RenderError(f"yaw, pitch and roll must be finite degrees; got {yaw}, {pitch}, {roll}")
+    _checked_poses(np.asarray(poses, dtype=np.float64), "poses")
     if plate.shape != (meta["height"], meta["width"], 3):
         raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
     camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
@@ -184,6 +213,7 @@ def render_audio_video(
     background: str | Path | None = None,
     features: str | Path | None = None,
     frames_dir: str | Path | None = None,
+    overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Render the run saying the audio of ``audio_path`` and write an mp4 with that audio.
@@ -193,12 +223,17 @@ def render_audio_video(
     features cannot be computed here, such as DeepSpeech features imported from AD-NeRF). Then
     the clip has ``min(M, frames of audio)`` frames.
 
+    ``out`` (and ``frames_dir``) are checked before any work: an input or an existing file is
+    never replaced without ``overwrite`` (:func:`check_render_outputs`). A ``features`` file with
+    fewer windows than the audio has frames shortens the clip (and its audio), with a warning.
+
     Returns:
         A summary: frames, seconds of audio, render wall time and frames per second, output path.
     """
 
     if poses_file is not None and from_dataset is not None:
         raise RenderError("give either a pose file or a dataset to take poses from, not both")
+    check_render_outputs(out, frames_dir, inputs=[audio_path, poses_file, features, background], overwrite=overwrite)
     try:
         audio = read_audio(audio_path, sample_rate=MODEL_RATE)
     except MediaError as exc:
@@ -211,7 +246,14 @@ def render_audio_video(
             raise RenderError(str(exc)) from exc
         if windows.shape[2] != meta["feature_dim"] or not np.isfinite(windows).all():
             raise RenderError(f"{features}: this run needs finite windows of shape (M, 16, {meta['feature_dim']}); got {windows.shape}")
-        windows = windows[: max(1, int(math.floor(audio.duration * meta["fps"])))]
+        wanted = max(1, int(math.floor(audio.duration * meta["fps"])))
+        if len(windows) < wanted:
+            warnings.warn(
+                f"{features}: {len(windows)} feature windows but the audio gives {wanted} frames at {meta['fps']:g} fps; "
+                f"the video stops after {len(windows) / meta['fps']:.2f} s of the {audio.duration:.2f} s of audio"
+            )
+            audio = AudioTrack(audio.samples[: int(round(len(windows) / meta["fps"] * audio.sample_rate))], audio.sample_rate, audio.start)
+        windows = windows[:wanted]
     elif meta["feature_kind"] == "none":
         raise RenderError("this run was trained on a silent dataset (--features none); it has no audio pathway to drive")
     elif meta["feature_kind"] not in FEATURE_KINDS:
@@ -227,8 +269,9 @@ def render_audio_video(
     else:
         source = Path(from_dataset) if from_dataset is not None else run.dataset
         if not (source / "poses.npy").exists():
-            raise RenderError(f"{source}: no poses.npy to take poses from")
-        poses = pingpong(np.load(source / "poses.npy"), n)
+            hint = "" if from_dataset is not None else " (the run's training dataset has moved or gone: take poses from a dataset with --from DATASET, or give them with --poses FILE.npy)"
+            raise RenderError(f"{source}: no poses.npy to take poses from{hint}")
+        poses = pingpong(_checked_poses(np.load(source / "poses.npy"), str(source / "poses.npy")), n)
     if background is not None:
         plate = load_background(background, meta["height"], meta["width"])
     else:
@@ -238,6 +281,7 @@ def render_audio_video(
     if frames_dir is not None:
         d = Path(frames_dir)
         d.mkdir(parents=True, exist_ok=True)
-        for i, f in enumerate(clip.frames):
-            cv2.imwrite(str(d / f"{i:06d}.png"), cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+        for name, f in zip(frame_names(n), clip.frames):
+            if not cv2.imwrite(str(d / name), cv2.cvtColor(f, cv2.COLOR_RGB2BGR)):
+                raise RenderError(f"{d / name}: could not write the frame")
     return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9)}

@@ -35,6 +35,7 @@ import trimesh
 from .data import LABEL_HEAD, LABEL_TORSO, SceneMeta, Truth, save_dataset, tail_split
 from .features import FeatureSpec, speech_windows
 from .io import AudioTrack, read_audio, write_video
+from .outputs import check_folder_output
 
 __all__ = ["SynthConfig", "HeadModel", "TorsoModel", "background_plate", "render_frame", "speech_audio", "mouth_opening", "pose_track", "synthesize"]
 
@@ -59,6 +60,12 @@ SENTENCES = [
     "Bright colours and soft shadows make the picture look real.",
     "Please speak slowly, pause often, and smile at the camera.",
 ]
+
+
+# Ranges of the synthetic scene's settings: a scene is held in memory while it is rendered
+# (1024 px for 600 s at 25 fps would be 47 GB of frames alone), so their product is bounded too.
+SYNTH_LIMITS: dict[str, tuple[float, float]] = {"seconds": (1.0, 600.0), "size": (16, 1024), "fps": (1.0, 120.0)}
+SYNTH_MAX_PIXELS = 1e9  # frames x width x height: about 8 GB of frames, labels and depth
 
 
 @dataclass
@@ -93,17 +100,19 @@ class SynthConfig:
         return int(round(self.seconds * self.fps))
 
     def validate(self) -> None:
-        """Raise ``ValueError`` on impossible settings."""
-        if self.seconds < 1.0:
-            raise ValueError(f"a synthetic scene needs at least 1 second; got {self.seconds}")
-        if self.size < 16:
-            raise ValueError(f"size must be >= 16 pixels; got {self.size}")
-        if self.fps <= 0:
-            raise ValueError(f"fps must be positive; got {self.fps}")
+        """Raise ``ValueError`` on impossible settings (ranges in :data:`SYNTH_LIMITS`)."""
+        for name, (lo, hi) in SYNTH_LIMITS.items():
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
+                raise ValueError(f"{name} must lie in [{lo:g}, {hi:g}]; got {value!r}")
         if not 0.0 < self.test_fraction < 1.0:
             raise ValueError(f"test_fraction must lie in (0, 1); got {self.test_fraction}")
         if self.voice not in ("auto", "formant", "espeak"):
             raise ValueError(f"voice must be auto, formant or espeak; got {self.voice!r}")
+        if self.features not in ("logmel", "phonemes"):
+            raise ValueError(f"features must be logmel or phonemes; got {self.features!r}")
+        if self.n_frames * self.size**2 > SYNTH_MAX_PIXELS:
+            raise ValueError(f"{self.n_frames} frames of {self.size}x{self.size} pixels would not fit in memory; make the scene shorter or smaller")
 
 
 # ----------------------------------------------------------------------------------------- audio
@@ -449,12 +458,17 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
         out_dir: Dataset folder to create.
         config: Scene parameters.
         progress: Called as ``progress(step, done, total)``.
-        overwrite: Replace an existing folder.
+        overwrite: Replace an existing adnerf dataset folder (see :mod:`adnerf.outputs`).
 
     Returns:
         The dataset folder.
+
+    Raises:
+        ValueError: Impossible settings.
+        adnerf.outputs.OutputError: ``out_dir`` must not be written; raised before any work.
     """
     config.validate()
+    check_folder_output(out_dir, "dataset", overwrite=overwrite)
     size = config.size
     n = config.n_frames
     samples, voice = speech_audio(config.seconds, config.voice, config.seed)

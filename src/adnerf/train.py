@@ -25,7 +25,7 @@ import json
 import math
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from .atomic import atomic_path
+from .outputs import check_folder_output, ensure_writable
 from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
 from .fields import check_config_keys
 from .renderer import RenderOutput
@@ -50,7 +51,7 @@ from .talking_head import (
     update_occupancy,
 )
 
-__all__ = ["RunError", "TrainConfig", "load_run", "train"]
+__all__ = ["RESUMABLE", "RunError", "TrainConfig", "load_run", "resumed_config", "stored_config", "train"]
 
 RUN_FORMAT = "adnerf-run"
 RUN_VERSION = 1
@@ -118,6 +119,10 @@ class TrainConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` on impossible settings."""
+        for name, kind in _FIELD_TYPES.items():
+            value = getattr(self, name)
+            if kind is float and not math.isfinite(value):
+                raise ValueError(f"{name} must be a finite number; got {value!r}")
         if self.head_iters < 0 or self.torso_iters < 0:
             raise ValueError("iteration counts must be >= 0")
         if self.rays < 1 or self.checkpoint_every < 1 or self.log_every < 1 or self.occupancy_every < 1:
@@ -132,12 +137,49 @@ class TrainConfig:
             raise ValueError("mask_weight must be >= 0")
         if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1):
             raise ValueError("mouth_rays and torso_person_rays must lie in [0, 1]")
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset must be one of {PRESETS}; got {self.preset!r}")
 
     @staticmethod
-    def from_dict(d: dict) -> "TrainConfig":
-        """From a dict (a ``--config`` JSON file); unknown keys are an error."""
+    def from_dict(d: object, base: "TrainConfig | None" = None) -> "TrainConfig":
+        """From a dict (a ``--config`` JSON file) whose keys replace those of ``base`` (default: the
+        defaults). Unknown keys, a non-object and a value of the wrong type (named by its key) are
+        ``TypeError`` / ``ValueError``."""
+        if not isinstance(d, dict):
+            raise TypeError(f"a training config is a JSON object of TrainConfig fields; got a {type(d).__name__}")
         check_config_keys(d, TrainConfig, "training config")
-        return TrainConfig(**d)
+        for key, value in d.items():
+            kind = _FIELD_TYPES[key]
+            ok = isinstance(value, str) if kind is str else isinstance(value, kind if kind is int else (int, float)) and not isinstance(value, bool)
+            if not ok:
+                raise TypeError(f"training config key {key!r} must be {_TYPE_WORDS[kind]}; got {value!r}")
+        return replace(base or TrainConfig(), **{k: float(v) if _FIELD_TYPES[k] is float else v for k, v in d.items()})
+
+
+PRESETS = ("fast", "paper")
+_FIELD_TYPES: dict[str, type] = {f.name: {"int": int, "float": float, "str": str}[f.type] for f in fields(TrainConfig)}  # type: ignore[index]
+_TYPE_WORDS = {int: "an integer", float: "a number", str: "a string"}
+# What a resumed run may change: its length and how it is checkpointed, logged and computed.
+# Everything else (rays, rates, seed, preset, ...) would make the continuation another run.
+RESUMABLE = ("head_iters", "torso_iters", "amp", "checkpoint_every", "log_every")
+
+
+def resumed_config(stored: TrainConfig, given: TrainConfig | None) -> TrainConfig:
+    """The schedule a resume continues with: ``stored``, or ``given`` when it differs from it only
+    in :data:`RESUMABLE` keys.
+
+    Raises:
+        RunError: ``given`` changes a key a resume cannot change.
+    """
+    if given is None:
+        return stored
+    changed = [f"{f.name} {getattr(stored, f.name)!r} -> {getattr(given, f.name)!r}" for f in fields(TrainConfig) if f.name not in RESUMABLE and getattr(given, f.name) != getattr(stored, f.name)]
+    if changed:
+        raise RunError(
+            f"a resume continues the run's stored training config and can change only {', '.join(RESUMABLE)}; "
+            f"this would change {'; '.join(changed)}. Train a new run (-o NEW) for other settings"
+        )
+    return given
 
 
 def _write_json_atomic(path: Path, doc: dict) -> None:
@@ -183,26 +225,71 @@ class Run:
         return self.torso_step > 0
 
 
+def _read_run_doc(root: Path) -> dict:
+    """``run.json`` of a run folder, checked for format and version."""
+    path = root / "run.json"
+    if not path.exists():
+        raise RunError(f"{root}: not an adnerf run (no run.json); train one with `adnerf train DATASET -o {root}`")
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise RunError(f"{path}: unreadable or damaged ({exc}); train a new run into another folder") from exc
+    if not isinstance(doc, dict) or doc.get("format") != RUN_FORMAT or doc.get("version") != RUN_VERSION:
+        found = (doc.get("format"), doc.get("version")) if isinstance(doc, dict) else (None, None)
+        raise RunError(f"{path}: format {found[0]!r} version {found[1]!r}; this adnerf reads {RUN_FORMAT} version {RUN_VERSION}")
+    return doc
+
+
+def stored_config(root: str | Path) -> TrainConfig:
+    """The training schedule stored in a run folder's ``run.json``."""
+    return TrainConfig.from_dict(_read_run_doc(Path(root))["train"])
+
+
+_CHECKPOINT_KEYS = ("model", "opt_head", "opt_torso", "generator", "head_step", "torso_step", "elapsed")
+
+
+def _read_checkpoint(path: Path, device: str | torch.device) -> dict:
+    """A checkpoint file's content; a missing, empty or damaged file is a :class:`RunError`."""
+    if not path.exists():
+        raise RunError(f"{path.parent}: no checkpoint.pt yet (training has not written one); train with `adnerf train DATASET -o {path.parent}`")
+    try:
+        ckpt = torch.load(path, map_location=device, weights_only=False)
+    except Exception as exc:  # torch.load raises many types on a damaged file (EOFError, RuntimeError, UnpicklingError, ...)
+        raise RunError(
+            f"{path}: damaged or incomplete checkpoint ({type(exc).__name__}: {exc}); adnerf writes checkpoints atomically, "
+            "so the file was changed outside adnerf: restore it, or train a new run into another folder"
+        ) from exc
+    if not isinstance(ckpt, dict) or any(k not in ckpt for k in _CHECKPOINT_KEYS):
+        raise RunError(f"{path}: not an adnerf checkpoint (missing entries); restore it, or train a new run into another folder")
+    return ckpt
+
+
 def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     """Load a run folder's configuration and latest checkpoint.
 
     Raises:
-        RunError: Missing folder, ``run.json`` or checkpoint, or another format version.
+        RunError: Missing folder, ``run.json`` or checkpoint, a damaged one, or another format version.
     """
     root = Path(root)
-    if not (root / "run.json").exists():
-        raise RunError(f"{root}: not an adnerf run (no run.json); train one with `adnerf train DATASET -o {root}`")
-    doc = json.loads((root / "run.json").read_text())
-    if doc.get("format") != RUN_FORMAT or doc.get("version") != RUN_VERSION:
-        raise RunError(f"{root}/run.json: format {doc.get('format')!r} version {doc.get('version')!r}; this adnerf reads {RUN_FORMAT} version {RUN_VERSION}")
+    doc = _read_run_doc(root)
     ckpt_path = root / "checkpoint.pt"
-    if not ckpt_path.exists():
-        raise RunError(f"{root}: no checkpoint.pt yet (training has not written one)")
-    ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+    ckpt = _read_checkpoint(ckpt_path, device)
     model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
     _load_model_state(model, ckpt["model"], ckpt_path)
     model.eval()
     return Run(root, Path(doc["dataset"]), model, TrainConfig.from_dict(doc["train"]), ckpt["head_step"], ckpt["torso_step"], doc["meta"])
+
+
+def _check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, root: Path) -> None:
+    """Refuse to resume ``root`` on a dataset other than the one it was trained on."""
+    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
+    stored = doc.get("dataset_sha256")
+    same = stored == ds.fingerprint() if stored else json.loads(json.dumps(meta)) == doc.get("meta")
+    if not same:
+        raise RunError(
+            f"{root} was trained on another dataset ({doc.get('dataset')}) than {dataset}: its content differs. "
+            f"A resume continues on the same data; resume with that dataset, or train a new run (-o NEW) on {dataset}"
+        )
 
 
 def _load_model_state(model: TalkingHead, state: dict, path: Path) -> None:
@@ -239,8 +326,9 @@ def _optimise(out: RenderOutput, target: torch.Tensor, mask: torch.Tensor, mask_
         m = mask.float()
         loss = loss + mask_weight * (F.mse_loss(out.coarse.opacity.float(), m) + F.mse_loss(out.final.opacity.float(), m))
     optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    optimizer.step()
+    if loss.requires_grad:  # False when empty-space skipping left no sample on any ray: no step
+        loss.backward()
+        optimizer.step()
     return float(loss.detach()), float(fine_mse.detach())
 
 
@@ -290,13 +378,29 @@ class _Trainer:
         }
         _save_atomic(state, self.root / "checkpoint.pt")
 
-    def load(self) -> None:
-        ckpt = torch.load(self.root / "checkpoint.pt", map_location=self.device, weights_only=False)
+    def load(self, ckpt: dict) -> None:
+        """Continue from checkpoint content (see :func:`_read_checkpoint`); the log keeps only the
+        lines of the steps the checkpoint holds, so a resumed run logs each step once."""
         _load_model_state(self.model, ckpt["model"], self.root / "checkpoint.pt")
         self.opt_head.load_state_dict(ckpt["opt_head"])
         self.opt_torso.load_state_dict(ckpt["opt_torso"])
         self.generator.set_state(ckpt["generator"])
         self.head_step, self.torso_step, self.elapsed = ckpt["head_step"], ckpt["torso_step"], ckpt["elapsed"]
+        log = self.root / "log.jsonl"
+        if log.exists():
+            done = {"head": self.head_step, "torso": self.torso_step}
+            rows = [line for line in log.read_text().splitlines() if line.strip()]
+            kept = []
+            for line in rows:
+                try:
+                    row = json.loads(line)
+                except ValueError:
+                    continue  # a line cut by a kill
+                if row.get("step", 0) <= done.get(row.get("stage"), 0):
+                    kept.append(line)
+            if len(kept) != len(rows):
+                with atomic_path(log) as tmp:
+                    tmp.write_text("".join(k + "\n" for k in kept))
 
     def log(self, row: dict) -> None:
         with open(self.root / "log.jsonl", "a") as f:
@@ -308,8 +412,14 @@ class _Trainer:
         return int(self.train_frames[k])
 
     def pick_rays(self, candidates: torch.Tensor, n: int | None = None) -> torch.Tensor:
-        idx = torch.randint(candidates.numel(), (self.tcfg.rays if n is None else n,), generator=self.generator).to(candidates.device)
-        return candidates[idx]
+        """``n`` (default ``rays``) pixel indices drawn with replacement from ``candidates``; from
+        every pixel when ``candidates`` is empty (a frame whose layer has no pixel in it)."""
+        n = self.tcfg.rays if n is None else n
+        if n == 0:
+            return candidates[:0]
+        pool = candidates if candidates.numel() else self.pixel_index
+        idx = torch.randint(pool.numel(), (n,), generator=self.generator).to(pool.device)
+        return pool[idx]
 
     def mouth_pixels(self, pose) -> torch.Tensor:
         """Flat indices of the pixels in the square of side ``MOUTH_CROP`` units around the mouth."""
@@ -466,8 +576,8 @@ def train(
         dataset: Dataset folder (see :mod:`adnerf.data`).
         run_dir: Run folder to create (or to resume).
         stage: ``"head"``, ``"torso"`` or ``"all"`` (head, then torso).
-        config: Schedule; on resume, ``None`` keeps the stored one and a given one replaces it
-            (e.g. to train longer).
+        config: Schedule; on resume, ``None`` keeps the stored one, and a given one may differ
+            from it only in :data:`RESUMABLE` keys (e.g. to train longer or add the torso stage).
         device: ``"cpu"`` or ``"cuda"``.
         resume: Continue from ``run_dir/checkpoint.pt``; without it an existing run is an error.
         progress: Show progress bars.
@@ -476,38 +586,58 @@ def train(
 
     Returns:
         The run folder.
+
+    Raises:
+        RunError: Nothing to resume, a run already there without ``resume``, another dataset
+            than the run's, a change a resume cannot make, a damaged checkpoint, or the torso
+            stage before a finished head stage. Raised before anything is written.
+        adnerf.outputs.OutputError: ``run_dir`` is a file, holds other files, or is not writable.
     """
     if stage not in ("head", "torso", "all"):
         raise ValueError(f"stage must be head, torso or all; got {stage!r}")
     root = Path(run_dir)
     ds = load_dataset(dataset, truth=False)
     run_json = root / "run.json"
+    ckpt = None
+    # Every check comes before the first write: a refused command leaves the folder as it was.
     if resume:
         if not run_json.exists():
             raise RunError(f"{root}: nothing to resume (no run.json); drop --resume to start a new run")
-        doc = json.loads(run_json.read_text())
-        if doc.get("format") != RUN_FORMAT or doc.get("version") != RUN_VERSION:
-            raise RunError(f"{run_json}: not a run of this adnerf version")
+        doc = _read_run_doc(root)
         mcfg = ModelConfig.from_dict(doc["model"])
-        tcfg = config or TrainConfig.from_dict(doc["train"])
+        tcfg = resumed_config(TrainConfig.from_dict(doc["train"]), config)
+        _check_same_dataset(doc, ds, dataset, root)
+        if (root / "checkpoint.pt").exists():
+            ckpt = _read_checkpoint(root / "checkpoint.pt", device)
     else:
         if run_json.exists() or (root / "checkpoint.pt").exists():
             raise RunError(f"{root}: a run already exists there; pass --resume to continue it or choose another folder")
+        check_folder_output(root, "run", inputs=[dataset], flag=None)
         tcfg = config or TrainConfig()
         mcfg = model_config(ds.meta, tcfg.preset)  # type: ignore[arg-type]
     tcfg.validate()
     if mcfg.feature_dim != ds.meta.feature_dim:
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")
+    head_done = ckpt["head_step"] if ckpt else 0
+    if stage == "torso" and head_done < tcfg.head_iters:
+        raise RunError(f"stage 2 needs a finished stage 1 ({head_done}/{tcfg.head_iters} head iterations); run --stage head (with --resume) first")
+    ensure_writable(root)
     root.mkdir(parents=True, exist_ok=True)
     meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
-    _write_json_atomic(
-        run_json,
-        {"format": RUN_FORMAT, "version": RUN_VERSION, "dataset": str(Path(dataset).resolve()), "model": mcfg.to_dict(), "train": asdict(tcfg), "meta": meta},
-    )
+    doc = {
+        "format": RUN_FORMAT,
+        "version": RUN_VERSION,
+        "dataset": str(Path(dataset).resolve()),
+        "dataset_sha256": ds.fingerprint(),
+        "model": mcfg.to_dict(),
+        "train": asdict(tcfg),
+        "meta": meta,
+    }
+    _write_json_atomic(run_json, doc)
     shutil.copyfile(Path(dataset) / "background.png", root / "background.png")
     trainer = _Trainer(root, ds, mcfg, tcfg, device, progress)
-    if resume and (root / "checkpoint.pt").exists():
-        trainer.load()
+    if ckpt is not None:
+        trainer.load(ckpt)
     budget = max_steps
     if stage in ("head", "all"):
         before = trainer.head_step

@@ -44,6 +44,7 @@ Conventions converted:
 from __future__ import annotations
 
 import json
+import math
 import warnings
 from pathlib import Path
 from typing import Callable
@@ -54,6 +55,7 @@ import numpy as np
 from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
 from ..features import load_npy_windows
 from ..io import AudioTrack, MediaError, read_audio
+from ..outputs import check_folder_output
 from .landmarks import mouth_centres
 from .pipeline import PreprocessError, scene_bounds
 
@@ -183,8 +185,10 @@ def import_adnerf(
     src = Path(source)
     if not src.is_dir():
         raise PreprocessError(f"{src}: not a folder")
-    if not fps > 0 or not head_width > 0:
-        raise PreprocessError("fps and head width must be positive")
+    if not (math.isfinite(fps) and fps > 0 and math.isfinite(head_width) and head_width > 0):
+        raise PreprocessError("fps and head width must be positive finite numbers")
+    inputs = [src] + ([Path(audio)] if audio is not None else [])
+    check_folder_output(out, "dataset", inputs=inputs, overwrite=overwrite)
     train_doc = _read_json(src / "transforms_train.json")
     val_path = src / "transforms_val.json"
     val_doc = _read_json(val_path) if val_path.exists() else {"frames": []}
@@ -281,7 +285,7 @@ def import_adnerf(
         if landmarks is not None:
             np.save(folder / "landmarks.npy", landmarks)
 
-    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, extra=extra, overwrite=overwrite)
+    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, extra=extra, overwrite=overwrite, inputs=inputs)
     return {
         "dataset": str(out),
         "frames": n,

@@ -41,8 +41,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset, tail_split, write_wav
+from ..data import LABEL_HEAD, LABEL_TORSO, DatasetError, SceneMeta, save_dataset, tail_split, write_wav
 from ..io import AudioTrack, MediaError, read_audio, read_video
+from ..outputs import OutputError, check_folder_output
 from .headpose import project_points
 from .landmarks import NOSE_BASE, mouth_centres
 
@@ -523,7 +524,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         if landmarks is not None:
             np.save(folder / "landmarks.npy", landmarks)
 
-    save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, extra=extra, overwrite=overwrite)
+    save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, extra=extra, overwrite=overwrite, inputs=[video])
     bar("write", 1, 1)
     return report
 
@@ -549,8 +550,7 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
     video, out = Path(video), Path(out)
     if not video.is_file():
         raise MediaError(f"{video}: no such file")
-    if out.exists() and not overwrite:
-        raise PreprocessError(f"{out}: already exists (choose another folder, or --overwrite)")
+    check_folder_output(out, "dataset", inputs=[video], overwrite=overwrite)
     bar = progress or (lambda step, done, total: None)
     work = _Work(out.with_name(f".{out.name}.preprocess"), video, config)
     docs: dict = {}
@@ -578,8 +578,8 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
             work.finish(step, time.perf_counter() - t0)
         report = _step_write(video, out, work, config, docs, bar, overwrite)
         failed = False
-    except (PreprocessError, MediaError):
-        # Bad input: nothing worth resuming.
+    except (PreprocessError, MediaError, DatasetError, OutputError):
+        # Bad input (also a scene the dataset check rejects at the write step): nothing worth resuming.
         shutil.rmtree(work.folder, ignore_errors=True)
         raise
     finally:
