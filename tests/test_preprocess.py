@@ -9,16 +9,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from adnerf.cli import main
 from adnerf.data import LABEL_HEAD, LABEL_TORSO
 from adnerf.io import AudioTrack, MediaError, write_video
 from adnerf.preprocess import PreprocessConfig, PreprocessError, preprocess_video
-from adnerf.preprocess.headpose import estimate_head_poses
+from adnerf.pose import rotation_angle
+from adnerf.preprocess.headpose import estimate_head_poses, mean_rotation
 from adnerf.preprocess.parsing import person_hull, split_head_torso
 from adnerf.preprocess.pipeline import _camera_motion
 from adnerf.preprocess.plate import background_plate
-from adnerf.preprocess.tracking import TrackConfig, rigid_region, track_points
+from adnerf.preprocess.tracking import TrackConfig, Tracks, rigid_region, track_points
 from adnerf.synth import SynthConfig, background_plate as synth_background, synthesize
 
 
@@ -273,6 +275,44 @@ def test_astronaut_in_plane_motion_is_recovered() -> None:
     pred = np.stack([(a @ np.linalg.inv(A[0]) @ c0)[:2] + 0.5 for a in A])
     assert np.abs(proj - pred).max() < 1.0
     assert math.isfinite(est.rms) and est.rms < 0.5
+    # The gauge: the canonical axes are the mean head orientation, so the poses' chordal mean is
+    # the identity (the head here is tilted by up to 8 degrees, so a wrong gauge shows).
+    assert rotation_angle_deg(mean_rotation(est.poses[:, :3, :3])) < 1e-6
+    assert rotation_angle_deg(est.poses[0, :3, :3]) > 1.0  # not trivially: frame 0 is off the mean
+
+
+def test_head_pose_gauge_is_the_mean_orientation() -> None:
+    """Single-segment path: tracks of points on an ellipsoidal head turning by 0..16 degrees of
+    yaw, anchored at frame 0 (8 degrees off the mean). The written poses' mean rotation is the
+    identity, the relative motion is the true one, and points and poses still reproject."""
+    rng = np.random.default_rng(0)
+    n, size, f = 24, 128, 170.0
+    radii = np.array([0.8, 1.0, 0.88])
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts = (d * radii)[d[:, 2] < -0.3]  # the face side, towards the camera
+    yaw = np.radians(np.linspace(0.0, 16.0, n))
+    R = np.stack([[[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]] for a in yaw])
+    t = np.array([0.1, -0.05, 5.0])
+    cam = np.einsum("nij,pj->npi", R, pts) + t
+    uv = f * cam[..., :2] / cam[..., 2:] + size / 2
+    labels = np.zeros((n, size, size), np.uint8)
+    for i in range(n):  # the head's silhouette: the projected ellipsoid's box, filled as an ellipse
+        (x0, y0), (x1, y1) = uv[i].min(0), uv[i].max(0)
+        cv2.ellipse(labels[i], (int((x0 + x1) / 2), int((y0 + y1) / 2)), (int((x1 - x0) / 2), int((y1 - y0) / 2)), 0, 0, 360, LABEL_HEAD, -1)
+    est = estimate_head_poses(Tracks(uv, np.zeros(len(pts), int)), labels, (f, f, size / 2, size / 2), reference=0, shape_sigma=0.0)
+    Re = est.poses[:, :3, :3]
+    assert rotation_angle_deg(mean_rotation(Re)) < 1e-6
+    assert abs(rotation_angle_deg(Re[0]) - 8.0) < 0.5  # frame 0 lies 8 degrees from the mean
+    for i in range(n):  # the motion since frame 0 is the true one (gauge-free)
+        assert rotation_angle_deg((Re[i] @ Re[0].T) @ (R[i] @ R[0].T).T) < 0.05
+    q = np.einsum("nij,pj->npi", Re, est.points) + est.poses[:, None, :3, 3]
+    assert np.abs(f * q[..., :2] / q[..., 2:] + size / 2 - uv).max() < 0.05
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees (the pose module's stable formula)."""
+    return math.degrees(float(rotation_angle(torch.as_tensor(R, dtype=torch.float64))))
 
 
 # ----------------------------------------------------------------------------- import-adnerf

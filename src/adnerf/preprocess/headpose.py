@@ -330,15 +330,17 @@ def estimate_head_poses(
     if not good.all():
         Rb, tb = _interpolate_poses(Rb, tb, good)
     Xb = result.points.numpy()
-    # Gauge: canonical axes = the mean head orientation (R_i <- R_i M, X <- M^T X).
-    M = mean_rotation(Rb)
     poses = np.tile(np.eye(4), (n, 1, 1))
-    poses[:, :3, :3] = Rb @ M
+    poses[:, :3, :3] = Rb
     poses[:, :3, 3] = tb
     poses = smooth_poses(poses, smooth_sigma)
+    # Gauge: canonical axes = the mean head orientation M. R_i <- R_i M^T and x <- M x leave every
+    # camera point R_i x + t_i unchanged and make the chordal mean of the R_i the identity.
+    M = mean_rotation(poses[:, :3, :3])
+    poses[:, :3, :3] = poses[:, :3, :3] @ M.T
     return HeadTrack(
         poses=poses,
-        points=_scatter(seen_points, Xb @ M),
+        points=_scatter(seen_points, Xb @ M.T),
         radii=radii,
         reference=reference,
         rms_before=result.rms_before,
