@@ -13,6 +13,8 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
+from .rng import uniform
+
 __all__ = ["OccupancyGrid"]
 
 
@@ -89,14 +91,14 @@ class OccupancyGrid(nn.Module):
             decay: Weight of the previous estimate, in ``[0, 1]``.
             jitter: Sample a random point inside each cell instead of its centre.
             chunk: Points per call of ``density_fn``.
-            generator: Optional random generator.
+            generator: Optional random generator, on any device (see :mod:`adnerf.rng`).
 
         Returns:
             The fraction of occupied cells.
         """
         points = self.cell_centers().reshape(-1, 3)
         if jitter:
-            noise = torch.rand(points.shape, dtype=points.dtype, device=points.device, generator=generator) - 0.5
+            noise = uniform(points.shape, dtype=points.dtype, device=points.device, generator=generator) - 0.5
             points = points + noise * self.cell_size
         values = torch.cat([density_fn(points[i : i + chunk]).reshape(-1).to(torch.float32) for i in range(0, points.shape[0], chunk)])
         values = values.reshape(self.density.shape).to(self.density.device)

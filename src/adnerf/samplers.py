@@ -15,6 +15,7 @@ from torch import Tensor
 
 from .pose import directions_to_canonical, to_canonical
 from .rays import RayBundle, RaySamples
+from .rng import uniform
 
 __all__ = [
     "AABBBounds",
@@ -189,7 +190,7 @@ def stratified_edges(near: Tensor, far: Tensor, n_samples: int, *, jitter: bool 
         far: Interval ends ``(...)``, ``far >= near``.
         n_samples: Number of intervals ``S >= 1``.
         jitter: Randomise interior boundaries.
-        generator: Optional random generator for reproducibility.
+        generator: Optional random generator for reproducibility, on any device (see :mod:`adnerf.rng`).
 
     Returns:
         Boundaries of shape ``(..., S + 1)``.
@@ -200,7 +201,7 @@ def stratified_edges(near: Tensor, far: Tensor, n_samples: int, *, jitter: bool 
     u = u.expand(*near.shape, n_samples + 1)
     if jitter and n_samples > 1:
         step = 1.0 / n_samples
-        noise = torch.rand(*near.shape, n_samples - 1, dtype=near.dtype, device=near.device, generator=generator)
+        noise = uniform((*near.shape, n_samples - 1), dtype=near.dtype, device=near.device, generator=generator)
         interior = u[..., 1:-1] + (noise - 0.5) * step
         u = torch.cat([u[..., :1], interior, u[..., -1:]], dim=-1)
     return near[..., None] + (far - near)[..., None] * u
@@ -219,7 +220,7 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: boo
         weights: Non-negative bin weights, shape ``(..., B)``.
         n_samples: Number of positions per ray.
         deterministic: Use the stratified quantiles ``(k + 0.5) / n`` instead of random ones.
-        generator: Optional random generator.
+        generator: Optional random generator, on any device (see :mod:`adnerf.rng`).
 
     Returns:
         Sorted positions inside ``[bins[..., 0], bins[..., -1]]``, shape ``(..., n_samples)``,
@@ -241,7 +242,7 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: boo
         u = (torch.arange(n_samples, dtype=bins.dtype, device=bins.device) + 0.5) / n_samples
         u = u.expand(*batch, n_samples).contiguous()
     else:
-        u = torch.rand(*batch, n_samples, dtype=bins.dtype, device=bins.device, generator=generator)
+        u = uniform((*batch, n_samples), dtype=bins.dtype, device=bins.device, generator=generator)
         u = torch.sort(u, dim=-1).values
     idx = torch.searchsorted(cdf.contiguous(), u, right=True)
     n_bins = w.shape[-1]

@@ -384,7 +384,7 @@ class _Trainer:
         _load_model_state(self.model, ckpt["model"], self.root / "checkpoint.pt")
         self.opt_head.load_state_dict(ckpt["opt_head"])
         self.opt_torso.load_state_dict(ckpt["opt_torso"])
-        self.generator.set_state(ckpt["generator"])
+        self.generator.set_state(ckpt["generator"].cpu())  # loaded with map_location=device
         self.head_step, self.torso_step, self.elapsed = ckpt["head_step"], ckpt["torso_step"], ckpt["elapsed"]
         log = self.root / "log.jsonl"
         if log.exists():
