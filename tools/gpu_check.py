@@ -1,0 +1,176 @@
+"""One GPU check, sized for a short lease: correctness on CUDA, the demo, render speed, error vs time.
+
+Run from the repository root on a machine with one CUDA GPU::
+
+    python tools/gpu_check.py                      # writes docs/bench/gpu.json (about 8 minutes)
+    python tools/gpu_check.py --out gpu.json --fields-budget 30 --skip fields
+
+Steps, each timed, each written to the JSON as soon as it ends (so a run stopped part-way keeps
+what it measured), each with its own time limit:
+
+1. ``tests``: the device tests on CUDA (``pytest --device cuda tests/test_devices.py``).
+2. ``demo``: ``adnerf demo --device cuda``: wall time, training time and the demo's metrics.
+3. ``render``: frames per second of the demo's trained model at 450x450 (head and torso, and head
+   alone), steady state, for two ray-chunk sizes (262144 is the GPU default of
+   :func:`adnerf.talking_head.render_chunk`).
+4. ``bench_render``: ``adnerf bench render --device cuda`` (quadrature error and time per Mray).
+5. ``fields``: a shortened ``adnerf bench fields --device cuda`` (held-out PSNR against time).
+
+The JSON records the device name, torch and CUDA versions and, per step, its figures or the error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+STEPS = ("tests", "demo", "render", "bench_render", "fields")
+
+
+def _run(cmd: list[str], limit: float) -> tuple[int, str, float]:
+    """Run a command with a time limit; returns (exit code, its output, seconds)."""
+    t0 = time.perf_counter()
+    try:
+        done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=limit, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        return done.returncode, done.stdout + done.stderr, time.perf_counter() - t0
+    except subprocess.TimeoutExpired as exc:
+        out = (exc.stdout or b"").decode(errors="replace") if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+        return 124, out + f"\n(stopped after {limit:.0f} s)", time.perf_counter() - t0
+
+
+def _json_lines(text: str) -> list[dict]:
+    rows = []
+    for line in text.splitlines():
+        if line.startswith("{"):
+            try:
+                rows.append(json.loads(line))
+            except ValueError:
+                pass
+    return rows
+
+
+def step_tests(args: argparse.Namespace) -> dict:
+    code, out, seconds = _run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--device", args.device, "tests/test_devices.py"], args.limit)
+    summary = [line for line in out.splitlines() if " passed" in line or " failed" in line or " skipped" in line]
+    return {"exit_code": code, "summary": summary[-1] if summary else out[-500:], "seconds": seconds}
+
+
+def step_demo(args: argparse.Namespace) -> dict:
+    folder = Path(args.work) / "demo"
+    code, out, seconds = _run([sys.executable, "-m", "adnerf.cli", "demo", "-o", str(folder), "--device", args.device], args.demo_limit)
+    result: dict = {"exit_code": code, "wall_seconds": seconds}
+    if (folder / "metrics.json").exists():
+        metrics = json.loads((folder / "metrics.json").read_text())
+        result.update({k: metrics[k] for k in ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "mouth_open_corr_gt", "train_seconds", "synth_seconds", "render_fps", "total_seconds")})
+        result["voice"] = json.loads((folder / "data" / "meta.json").read_text())["source"].split("voice=")[-1]
+    else:
+        result["output_tail"] = out[-2000:]
+    return result
+
+
+def step_render(args: argparse.Namespace) -> dict:
+    import torch
+
+    from adnerf.cameras import Camera, intrinsics_matrix
+    from adnerf.data import load_dataset
+    from adnerf.talking_head import render_frame
+    from adnerf.train import load_run
+
+    folder = Path(args.work) / "demo"
+    run = load_run(folder / "run", args.device)
+    ds = load_dataset(folder / "data")
+    size = args.render_size
+    scale = size / ds.meta.width
+    fx, fy, cx, cy = (v * scale for v in ds.meta.intrinsics)
+    camera = Camera(intrinsics_matrix(fx, fy, cx, cy).to(args.device), size, size)
+    plate = torch.nn.functional.interpolate(torch.as_tensor(ds.background, dtype=torch.float32).permute(2, 0, 1)[None] / 255.0, size=(size, size), mode="bilinear")[0].permute(1, 2, 0).to(args.device)
+    with torch.no_grad():
+        codes = run.model.all_codes(torch.as_tensor(ds.features, device=args.device), run.smooth_audio)
+    frames = list(ds.meta.test)
+    result: dict = {"size": size, "frames": len(frames)}
+
+    def sync() -> None:
+        if args.device == "cuda":
+            torch.cuda.synchronize()
+
+    for torso in (True, False):
+        for chunk in (65536, 262144):  # 1024 (the CPU's) gave 0.8 frames/s on an H100
+            def one(i: int) -> None:
+                pose = ds.head_pose(frames[i % len(frames)], device=args.device)
+                render_frame(run.model, camera, pose, codes[frames[i % len(frames)]], plate, torso=torso, chunk=chunk, amp=run.train_config.amp)
+
+            for i in range(3):  # warm-up
+                one(i)
+            sync()
+            t0, n = time.perf_counter(), 0
+            while n < 10 or (time.perf_counter() - t0 < 5.0 and n < 200):
+                one(n)
+                n += 1
+            sync()
+            key = f"{'head_torso' if torso else 'head'}_chunk{chunk}_fps"
+            result[key] = n / (time.perf_counter() - t0)
+    if args.device == "cuda":
+        result["max_memory_gb"] = torch.cuda.max_memory_allocated() / 1e9
+    return result
+
+
+def step_bench_render(args: argparse.Namespace) -> dict:
+    code, out, seconds = _run([sys.executable, "-m", "adnerf.cli", "bench", "render", "--device", args.device, "--json"], args.limit)
+    return {"exit_code": code, "seconds": seconds, "rows": _json_lines(out)} if code == 0 else {"exit_code": code, "output_tail": out[-2000:]}
+
+
+def step_fields(args: argparse.Namespace) -> dict:
+    checkpoints = ",".join(str(c) for c in (5, 10, 20, 30, 60, 120, 300) if c <= args.fields_budget)
+    cmd = [sys.executable, "-m", "adnerf.cli", "bench", "fields", "--device", args.device, "--json", "--budget", str(args.fields_budget), "--checkpoints", checkpoints, "--configs", args.fields_configs]
+    code, out, seconds = _run(cmd, args.limit)
+    return {"exit_code": code, "seconds": seconds, "budget": args.fields_budget, "rows": _json_lines(out)} if code == 0 else {"exit_code": code, "output_tail": out[-2000:]}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", default=str(ROOT / "docs" / "bench" / "gpu.json"), help="JSON to write (default docs/bench/gpu.json)")
+    parser.add_argument("--work", default="/tmp/adnerf_gpu_check", help="scratch folder (the demo's data and run)")
+    parser.add_argument("--device", default="cuda", help="cuda (default), or cpu to try the script itself")
+    parser.add_argument("--skip", default="", help="comma-separated steps to skip: " + ", ".join(STEPS))
+    parser.add_argument("--limit", type=float, default=300.0, help="seconds allowed per other step (default 300)")
+    parser.add_argument("--demo-limit", type=float, default=420.0, help="seconds allowed for the demo step (default 420)")
+    parser.add_argument("--render-size", type=int, default=450, help="frame side for the render speed (default 450, as AD-NeRF)")
+    parser.add_argument("--fields-budget", type=float, default=30.0, help="training seconds per configuration in the fields bench (default 30)")
+    parser.add_argument("--fields-configs", default="paper,fast", help="configurations of the fields bench (default paper,fast)")
+    args = parser.parse_args()
+
+    import torch
+
+    doc: dict = {
+        "device": torch.cuda.get_device_name(0) if args.device == "cuda" and torch.cuda.is_available() else "cpu",
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "date": time.strftime("%Y-%m-%d"),
+        "command": "python " + " ".join([Path(sys.argv[0]).as_posix(), *sys.argv[1:]]),
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    skip = set(filter(None, args.skip.split(",")))
+    for name in STEPS:
+        if name in skip:
+            continue
+        print(f"== {name}", flush=True)
+        t0 = time.perf_counter()
+        try:
+            doc[name] = globals()[f"step_{name}"](args)
+        except Exception as exc:  # a failed step is recorded, and the next one still runs
+            doc[name] = {"error": f"{type(exc).__name__}: {exc}"}
+        doc[name]["step_seconds"] = round(time.perf_counter() - t0, 1)
+        print(json.dumps(doc[name])[:1500], flush=True)
+        out.write_text(json.dumps(doc, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
