@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from adnerf.data import LABEL_HEAD
+from adnerf.data import LABEL_HEAD, LABEL_TORSO
 from adnerf.preprocess.landmarks import (
     BROWS,
     EYES,
@@ -24,6 +24,7 @@ from adnerf.preprocess.landmarks import (
     make_face_detector,
     track_faces,
 )
+from adnerf.preprocess.parsing import JAW_MARGIN, layer_check, split_at_landmarks, split_head_torso
 
 
 @pytest.fixture(scope="module")
@@ -165,3 +166,55 @@ def test_track_faces_reports_no_face_as_nan() -> None:
     frames[:] = 40
     track = track_faces(frames, MarkerDetector(), labels)
     assert not track.detected.any() and np.isnan(track.landmarks).all() and np.isnan(track.boxes).all()
+
+
+def test_jaw_split_puts_mouth_chin_hair_and_ears_in_the_head(dlib_detector: DlibFaceDetector) -> None:
+    """The astronaut's face on a body (head, a neck as wide as the jaw, shoulders): cut along the
+    jaw line of her landmarks, every lip landmark and the chin are head, the neck below the jaw
+    and the shoulders torso, the hair above and beside the face head. Her neck is as wide as her
+    jaw, so the silhouette has no narrowing under the chin (a close crop), where the neck-row cut
+    gives up and makes everything head."""
+    img = skimage.data.astronaut()
+    lm = _best(dlib_detector, img).landmarks
+    h, w = img.shape[:2]
+    face_w = float(np.linalg.norm(lm[16] - lm[0]))
+    cx, top = float(lm[:, 0].mean()), float(lm[19:25, 1].min()) - 0.5 * face_w  # hair above the brows
+    person = np.zeros((h, w), np.uint8)
+    cv2.ellipse(person, (int(cx), int((top + lm[8, 1]) / 2)), (int(0.62 * face_w), int((lm[8, 1] - top) / 2)), 0, 0, 360, 1, -1)
+    person[int(lm[5, 1]) : int(lm[8, 1] + 0.6 * face_w), int(lm[4, 0]) : int(lm[12, 0])] = 1  # neck
+    person[int(lm[8, 1] + 0.5 * face_w) :, int(cx - 1.5 * face_w) : int(cx + 1.5 * face_w)] = 1  # shoulders
+    person[int(lm[2, 1]) : int(lm[7, 1]), int(lm[0, 0]) - 8 : int(lm[4, 0])] = 1  # hair hanging beside the left cheek
+    person = person.astype(bool)
+    labels = split_at_landmarks(np.where(person, LABEL_HEAD, 0)[None].astype(np.uint8), lm[None])[0]
+    check = layer_check(labels[None], lm[None])
+    assert check["lip_in_head"] == 1.0 and check["chin_lip_midpoint_in_head"] == 1.0 and check["chin_in_head"] == 1.0
+    assert set(np.unique(labels[person])) == {LABEL_HEAD, LABEL_TORSO} and not labels[~person].any()
+    below_jaw = int(lm[8, 1] + (JAW_MARGIN + 0.05) * face_w)
+    assert (labels[below_jaw:][person[below_jaw:]] == LABEL_TORSO).all()  # neck and shoulders
+    assert (labels[: int(lm[19:25, 1].min())][person[: int(lm[19:25, 1].min())]] == LABEL_HEAD).all()  # hair
+    side = int(lm[0, 0]) - 3  # beside the face, level with the eyes: hair / ear
+    assert person[int(lm[36, 1]), side] and labels[int(lm[36, 1]), side] == LABEL_HEAD
+    # Hair beside the lower cheek: outside the jaw contour, inside the landmarks' columns, above the
+    # chin. The cut follows the contour only under the lower jaw (4-12), so this is head.
+    u, v = int(lm[3, 0]) + 1, int(lm[5, 1])  # her jaw runs straight down to landmark 3, then curves in
+    assert lm[0, 0] < u + 0.5 < lm[4, 0] and person[v, u]
+    assert labels[v, u] == LABEL_HEAD
+    # The margin: the jaw's own pixels just below the landmark line are head.
+    assert labels[int(lm[8, 1]) + 1, int(lm[8, 0])] == LABEL_HEAD
+    # The neck-row cut finds no narrowing and makes the whole person head: an empty torso layer.
+    row_labels, row = split_head_torso(person)
+    assert row is None and not (row_labels == LABEL_TORSO).any()
+
+
+def test_layer_check_counts_landmarks_in_the_head() -> None:
+    """Known answer: a head label above row 50 holds exactly the landmarks above it."""
+    labels = np.zeros((1, 100, 100), np.uint8)
+    labels[0, :50] = LABEL_HEAD
+    labels[0, 50:] = LABEL_TORSO
+    lm = np.full((1, 68, 2), 20.5)
+    lm[0, 48:58, 1] = 60.5  # half of the 20 lip points below the cut
+    lm[0, 8] = (20.5, 90.5)  # chin tip far below: the chin-lip midpoint (20.5, 40.5)... lower lip 57 is at 60.5
+    check = layer_check(labels, lm)
+    assert check["lip_in_head"] == 0.5 and check["lip_in_head_worst"] == 0.5
+    assert check["chin_lip_midpoint_in_head"] == 0.0 and check["chin_lip_midpoint_worst_frame"] == 0  # (90.5 + 60.5) / 2 = 75.5
+    assert check["chin_in_head"] == 0.8  # landmarks 6, 7, 9, 10 at row 20.5, 8 at 90.5

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from adnerf.cli import main
-from adnerf.data import LABEL_HEAD, LABEL_TORSO
+from adnerf.data import LABEL_HEAD, LABEL_TORSO, load_dataset
 from adnerf.io import AudioTrack, MediaError, write_video
 from adnerf.preprocess import PreprocessConfig, PreprocessError, preprocess_video
 from adnerf.pose import rotation_angle
@@ -60,6 +60,10 @@ def test_preprocess_recovers_the_synthetic_truth(preprocessed: Path, scene: Path
     assert report["pose_reprojection_rms_px"] < 1.0
     assert (preprocessed / "preprocess_report.png").stat().st_size > 0
     assert not any(p.name.startswith(".") for p in preprocessed.parent.iterdir()), "work folder left behind"
+    # The mouth is in the head layer: the classical parser's row cut is replaced by the jaw line.
+    assert report["face_head_torso_cut"].startswith("the jaw line") and "layers_warning" not in report
+    assert report["layers"]["lip_in_head"] >= 0.98 and report["layers"]["chin_lip_midpoint_in_head"] >= 0.9
+    assert out["passed"]["layers"] and out["layers_truth_lip_in_head"] >= 0.98
 
 
 def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path) -> None:
@@ -89,6 +93,15 @@ def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path) -> None:
     assert not (tmp_path / "again" / "landmarks.npy").exists() and (out / "landmarks.npy").exists()
     guess = json.loads((tmp_path / "again" / "meta.json").read_text())["mouth"]
     assert guess[0] == 0.0 and json.loads((out / "meta.json").read_text())["mouth"] != guess
+    # ... and the head / torso cut is the neck-row guess, which the report says.
+    assert "a guess" in report["face_head_torso_cut"] and "not known" in report["layers"]["note"]
+    # --cut neck-row keeps the parser's row cut with landmarks (for comparisons): other layers.
+    row = preprocess_video(scene / "video.mp4", tmp_path / "row", PreprocessConfig(focal=1.33 * 96, cut="neck-row"))
+    assert "narrowest row" in row["face_head_torso_cut"] and "lip_in_head" in row["layers"]
+    jaw, neck = load_dataset(out, truth=False).parsing, load_dataset(tmp_path / "row", truth=False).parsing
+    assert np.array_equal(jaw > 0, neck > 0) and not np.array_equal(jaw, neck)
+    with pytest.raises(PreprocessError, match="--cut"):
+        PreprocessConfig(cut="ear").validate()
 
 
 def _write(path: Path, frames: np.ndarray, audio: bool = True, fps: float = 25.0) -> Path:

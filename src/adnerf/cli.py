@@ -211,7 +211,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
     from .preprocess.pipeline import PreprocessConfig, preprocess_video
 
-    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, focal=args.focal, test_fraction=args.test_fraction)
+    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, focal=args.focal, test_fraction=args.test_fraction)
     bars: dict[str, tqdm] = {}
 
     def progress(step: str, done: int, total: int) -> None:
@@ -455,6 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--features", choices=("logmel", "phonemes", "none"), default="logmel", help="audio features (none: silent dataset, allowed without audio)")
     pre.add_argument("--face", default="dlib", help="face box and 68 landmarks: dlib (default; HOG detector and the 68-point model of the face-recognition-models package), dlib:PREDICTOR.dat (your own 68-point model) or none")
     pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
+    pre.add_argument("--cut", choices=("jaw", "neck-row"), default="jaw", help="where head meets torso for the classical parser: the landmarks' jaw line, or the silhouette's narrowest row (the earlier cut, for comparisons)")
     pre.add_argument("--focal", type=_positive, default=None, help="focal length in pixels, > 0 (default 1.33 x the larger frame side)")
     pre.add_argument("--test-fraction", type=_number(float, 0.0, 0.9, open_lo=True), default=0.1, help="fraction of frames at the end held out for testing, in (0, 0.9]")
     pre.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the video)")

@@ -221,6 +221,7 @@ class BiSeNetParser:
         if size < 32 or batch < 1:
             raise ValueError("BiSeNet input size must be >= 32 and batch >= 1")
         self.name = f"bisenet:{checkpoint}"
+        self.cuts_at_jaw = True  # its skin / neck classes meet at the jaw
         self.net = load_bisenet(checkpoint, device)
         self.device, self.size, self.batch = torch.device(device), size, batch
 

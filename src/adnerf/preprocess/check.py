@@ -21,10 +21,19 @@ import numpy as np
 
 from ..data import load_dataset
 from .headpose import align_poses, project_points
+from .parsing import layer_check
+from .pipeline import LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN
 
 __all__ = ["align_poses", "parsing_iou", "check_preprocess", "BARS"]
 
-BARS = {"rotation_median_deg": 1.0, "translation_median_head_widths": 0.02, "iou_mean": 0.90, "plate_psnr_seen": 30.0}
+BARS = {
+    "rotation_median_deg": 1.0,
+    "translation_median_head_widths": 0.02,
+    "iou_mean": 0.90,
+    "plate_psnr_seen": 30.0,
+    "layers_lip_in_head": LIP_IN_HEAD_MIN,
+    "layers_chin_lip_midpoint_in_head": MIDPOINT_IN_HEAD_MIN,
+}
 TRUE_HEAD_WIDTH = 1.6  # the synthetic head's width in its scene units
 
 
@@ -95,10 +104,17 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
         "mouth_error_max_px": float(mouth_err.max()),
         "bars": BARS,
     }
+    lms = Path(dataset) / "landmarks.npy"
+    if lms.exists():  # the mouth in the head layer: in the written parsing and in the truth's
+        landmarks = np.load(lms)
+        out.update({f"layers_{k}": v for k, v in layer_check(est.parsing, landmarks).items()})
+        out.update({f"layers_truth_{k}": v for k, v in layer_check(ref.truth.parsing, landmarks).items()})
     out["passed"] = {
         "rotation": out["rotation_median_deg"] <= BARS["rotation_median_deg"],
         "translation": out["translation_median_head_widths"] <= BARS["translation_median_head_widths"],
         "parsing": out["iou_mean"] >= BARS["iou_mean"],
         "plate": out["plate_psnr_seen"] >= BARS["plate_psnr_seen"],
     }
+    if "layers_lip_in_head" in out:
+        out["passed"]["layers"] = out["layers_lip_in_head"] >= BARS["layers_lip_in_head"] and out["layers_chin_lip_midpoint_in_head"] >= BARS["layers_chin_lip_midpoint_in_head"]
     return out

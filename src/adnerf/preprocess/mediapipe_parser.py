@@ -25,11 +25,9 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Callable
 
-import cv2
 import numpy as np
 
-from ..data import LABEL_HEAD, LABEL_TORSO
-from .parsing import _fill_holes, _largest_component, split_head_torso
+from .parsing import _fill_holes, _largest_component, split_at_jaw, split_head_torso
 
 __all__ = ["MEDIAPIPE_INSTALL", "MediapipeParser", "split_at_jaw", "import_mediapipe"]
 
@@ -47,41 +45,6 @@ def import_mediapipe() -> ModuleType:
     return mp
 
 
-def split_at_jaw(person: np.ndarray, face_points: np.ndarray) -> np.ndarray:
-    """Head and torso labels of a silhouette cut along the jaw line of a face.
-
-    Args:
-        person: ``(H, W)`` bool silhouette.
-        face_points: ``(P, 2)`` pixel positions ``(u, v)`` of points covering the face (pixel
-            centres at ``+0.5``).
-
-    Raises:
-        ValueError: Fewer than 3 finite points.
-
-    Returns:
-        ``(H, W)`` uint8 labels (all torso when the face lies outside the frame): in the columns of the points' convex hull, head where the person
-        is on or above the hull's lower edge (the jaw line) and torso below (the neck); beside
-        them, head down to the chin's row (hair, ears) and torso below (shoulders).
-    """
-    h, w = person.shape
-    points = face_points[np.isfinite(face_points).all(1)]
-    if len(points) < 3:
-        raise ValueError(f"split_at_jaw needs at least 3 finite face points; got {len(points)}")
-    hull = np.zeros((h, w), np.uint8)
-    cv2.fillConvexPoly(hull, cv2.convexHull(np.clip(np.floor(points), -(2**20), 2**20).astype(np.int32)), 1)
-    cols = np.flatnonzero(hull.any(0))
-    labels = np.zeros((h, w), np.uint8)
-    if len(cols) == 0:  # the face lies outside the frame
-        labels[person] = LABEL_TORSO
-        return labels
-    cut = np.full(w, float(h - 1 - np.argmax(hull[::-1].any(1))))  # beside the face: the chin's row
-    cut[cols] = h - 1 - np.argmax(hull[::-1, cols] > 0, axis=0)  # under the face: its lower edge
-    head = person & (np.arange(h)[:, None] <= cut[None, :])
-    labels[head] = LABEL_HEAD
-    labels[person & ~head] = LABEL_TORSO
-    return labels
-
-
 @dataclass
 class MediapipeParser:
     """Selfie segmentation for the person, face mesh for the head / torso cut (module docstring).
@@ -94,6 +57,7 @@ class MediapipeParser:
     threshold: float = 0.5
     model_selection: int = 0
     name: str = "mediapipe"
+    cuts_at_jaw: bool = True  # the face mesh gives the jaw line
 
     def parse(self, frames: np.ndarray, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
         mp = import_mediapipe()

@@ -22,15 +22,22 @@ from scipy.ndimage import uniform_filter1d
 
 from ..data import LABEL_HEAD, LABEL_TORSO
 
-__all__ = ["Parser", "ClassicalParser", "make_parser", "split_head_torso", "person_hull", "PARSERS"]
+__all__ = ["Parser", "ClassicalParser", "make_parser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "person_hull", "PARSERS", "JAW_MARGIN"]
 
 Progress = Callable[[int, int], None]
 
 
 class Parser(Protocol):
-    """What every parsing backend provides."""
+    """What every parsing backend provides.
+
+    Attributes:
+        name: The backend's name (as ``--parser`` takes it).
+        cuts_at_jaw: Whether its head / torso boundary follows the jaw (a learned parser, a face
+            mesh); otherwise ``adnerf preprocess`` re-splits along the 68 landmarks' jaw line.
+    """
 
     name: str
+    cuts_at_jaw: bool
 
     def parse(self, frames: np.ndarray, progress: Progress | None = None) -> np.ndarray:
         """Label maps ``(N, H, W)`` uint8 in {0, 1, 2} for RGB frames ``(N, H, W, 3)`` uint8."""
@@ -129,6 +136,110 @@ def split_head_torso(person: np.ndarray, min_rows: int = 4) -> tuple[np.ndarray,
     return labels, cut
 
 
+def split_at_jaw(person: np.ndarray, face_points: np.ndarray, margin: float = 0.0, neck_span: tuple[float, float] | None = None) -> np.ndarray:
+    """Head and torso labels of a silhouette cut along the jaw line of a face.
+
+    Args:
+        person: ``(H, W)`` bool silhouette.
+        face_points: ``(P, 2)`` pixel positions ``(u, v)`` of points covering the face (pixel
+            centres at ``+0.5``): 68 iBUG landmarks, or a face mesh.
+        margin: Pixels the cut is moved down from the points' lower edge (the jaw's underside
+            and its shadow belong to the head).
+        neck_span: ``(u_min, u_max)``: the columns under the lower jaw, where the neck is; the cut
+            follows the points' lower edge only there, and beside them lies at the chin's row (so
+            hair hanging beside the cheeks stays head). ``None``: all the points' columns.
+
+    Raises:
+        ValueError: Fewer than 3 finite points.
+
+    Returns:
+        ``(H, W)`` uint8 labels (all torso when the face lies outside the frame): in the columns
+        of the points' convex hull (within ``neck_span``), head where the person is on or above
+        the hull's lower edge (the jaw line) plus ``margin`` and torso below (the neck); beside
+        them, head down to the chin's row plus ``margin`` (hair, ears) and torso below (shoulders).
+    """
+    h, w = person.shape
+    points = face_points[np.isfinite(face_points).all(1)]
+    if len(points) < 3:
+        raise ValueError(f"split_at_jaw needs at least 3 finite face points; got {len(points)}")
+    hull = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.clip(np.floor(points), -(2**20), 2**20).astype(np.int32)), 1)
+    cols = np.flatnonzero(hull.any(0))
+    labels = np.zeros((h, w), np.uint8)
+    if len(cols) == 0:  # the face lies outside the frame
+        labels[person] = LABEL_TORSO
+        return labels
+    cut = np.full(w, float(h - 1 - np.argmax(hull[::-1].any(1))))  # beside the face: the chin's row
+    if neck_span is not None:
+        cols = cols[(cols + 0.5 >= neck_span[0]) & (cols + 0.5 <= neck_span[1])]
+    cut[cols] = h - 1 - np.argmax(hull[::-1, cols] > 0, axis=0)  # under the face: its lower edge
+    head = person & (np.arange(h)[:, None] <= cut[None, :] + margin)
+    labels[head] = LABEL_HEAD
+    labels[person & ~head] = LABEL_TORSO
+    return labels
+
+
+# iBUG 68-point layout: jaw 0-16 (chin tip 8), lips 48-67 (lower lip's middle 57). The neck lies
+# under the lower jaw, landmarks 4-12.
+JAW, CHIN, LIPS, CHIN_TIP, LOWER_LIP, NECK_SPAN = slice(0, 17), slice(6, 11), slice(48, 68), 8, 57, slice(4, 13)
+JAW_MARGIN = 0.04  # the cut's margin below the jaw line, as a fraction of the face width (landmarks 0 to 16)
+
+
+def split_at_landmarks(labels: np.ndarray, landmarks: np.ndarray, margin: float = JAW_MARGIN) -> np.ndarray:
+    """Re-split every frame's person (head + torso) along the jaw line of its 68 landmarks.
+
+    Args:
+        labels: ``(N, H, W)`` uint8 parsing; only ``labels > 0`` (the person) is used.
+        landmarks: ``(N, 68, 2)`` iBUG landmarks (pixel centres at ``+0.5``).
+        margin: Margin below the jaw as a fraction of the face width.
+
+    Returns:
+        ``(N, H, W)`` uint8 labels (:func:`split_at_jaw` per frame, the cut following the jaw
+        between landmarks 4 and 12 and at the chin's row beside them).
+    """
+    out = np.empty_like(labels)
+    for i in range(len(labels)):
+        lm = landmarks[i]
+        width = float(np.linalg.norm(lm[16] - lm[0]))
+        span = (float(lm[NECK_SPAN, 0].min()), float(lm[NECK_SPAN, 0].max()))
+        out[i] = split_at_jaw(labels[i] > 0, lm, margin * width if np.isfinite(width) else 0.0, neck_span=span)
+    return out
+
+
+def layer_check(labels: np.ndarray, landmarks: np.ndarray) -> dict:
+    """Whether the audio-driven face is in the head layer: fractions of landmarks inside it.
+
+    Args:
+        labels: ``(N, H, W)`` uint8 parsing.
+        landmarks: ``(N, 68, 2)`` landmarks (pixel centres at ``+0.5``).
+
+    Returns:
+        ``lip_in_head`` (lip landmarks 48-67 in the head label, over all frames),
+        ``lip_in_head_worst`` (the lowest fraction of one frame), ``chin_in_head`` (jaw landmarks
+        6-10), ``chin_lip_midpoint_in_head`` (frames whose point halfway between the chin tip 8 and
+        the lower lip 57 is head) and ``chin_lip_midpoint_worst_frame`` (index of a frame where
+        that point is not head, else ``None``).
+    """
+    n, h, w = labels.shape
+
+    def inside(points: np.ndarray) -> np.ndarray:  # (N, P, 2) -> (N, P) bool
+        uv = np.floor(points).astype(np.int64)
+        ok = np.isfinite(points).all(-1) & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+        u, v = np.clip(uv[..., 0], 0, w - 1), np.clip(uv[..., 1], 0, h - 1)
+        return ok & (labels[np.arange(n)[:, None], v, u] == LABEL_HEAD)
+
+    lips = inside(landmarks[:, LIPS])
+    mid = inside(0.5 * (landmarks[:, CHIN_TIP : CHIN_TIP + 1] + landmarks[:, LOWER_LIP : LOWER_LIP + 1]))[:, 0]
+    misses = np.flatnonzero(~mid)
+    return {
+        "lip_in_head": float(lips.mean()),
+        "lip_in_head_worst": float(lips.mean(1).min()),
+        "chin_in_head": float(inside(landmarks[:, CHIN]).mean()),
+        "chin_lip_midpoint_in_head": float(mid.mean()),
+        "chin_lip_midpoint_worst_frame": int(misses[0]) if len(misses) else None,
+    }
+
+
 @dataclass
 class ClassicalParser:
     """Parsing without learned weights, for a static camera.
@@ -160,8 +271,12 @@ class ClassicalParser:
     hull_margin: int = 4
     max_stat_frames: int = 80
     name: str = "classical"
+    cuts_at_jaw: bool = False  # cuts at the neck's row; the pipeline re-splits with landmarks
 
     def parse(self, frames: np.ndarray, progress: Progress | None = None) -> np.ndarray:
+        # GrabCut's k-means draws from OpenCV's per-thread global RNG: reset it, so a clip parses
+        # the same whatever ran before in the process (seed 0 is OpenCV's fresh state, 0xffffffff).
+        cv2.setRNGSeed(0)
         n, h, w, _ = frames.shape
         stat = np.linspace(0, n - 1, min(n, self.max_stat_frames)).round().astype(int)
         lab = _lab(frames[stat])
