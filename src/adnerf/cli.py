@@ -125,6 +125,35 @@ def _cmd_bench_fields(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_real(args: argparse.Namespace) -> int:
+    from .bench_real import bench_real, plot_mouth_opening
+
+    try:
+        row = bench_real(
+            args.video,
+            size=args.size or None,
+            minutes=args.minutes,
+            device=_device(args.device),
+            cut=args.cut,
+            test_fraction=args.test_fraction,
+            focal=args.focal,
+            work=args.work,
+            lpips_backbone=args.lpips_backbone,
+            lpips_linear=args.lpips_linear,
+            seed=args.seed,
+            log=lambda m: print(m, file=sys.stderr),
+        )
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "mouth_open_corr", "av_offset_frames", "lpips", "train_seconds")
+    table = "\n".join(f"{k:>18}: {row.get(k)}" for k in keys) + f"\n{'contact sheet':>18}: {row['sheet']}"
+    _emit([row], table, args.json)
+    if args.plot:
+        plot_mouth_opening(row, args.plot)
+        print(f"plot: {args.plot}", file=sys.stderr)
+    return 0
+
+
 def _cmd_bench_features(args: argparse.Namespace) -> int:
     from .bench import bench_features
     from .io import MediaError
@@ -416,6 +445,21 @@ def build_parser() -> argparse.ArgumentParser:
     fields.add_argument("--plot", default=None, help="write a PNG of PSNR against training time")
     fields.add_argument("--json", action="store_true", help="JSON lines on stdout, table on stderr")
     fields.set_defaults(func=_cmd_bench_fields)
+    real = bench_sub.add_parser("real", help="a real clip: preprocess, train within a budget, render its held-out tail, measure (PSNR, SSIM, LMD, lip sync, LPIPS)")
+    real.add_argument("video", help="the clip (one person, static camera, with audio)")
+    real.add_argument("--size", type=_number(int, 0, 2048), default=256, help="longer side in pixels the clip is resized to first, 0 to keep it")
+    real.add_argument("--minutes", type=_number(float, 0.0, 10000.0, open_lo=True), default=10.0, help="training budget for both stages, minutes of training time")
+    real.add_argument("--device", default="cpu", help="cpu or cuda")
+    real.add_argument("--cut", choices=("jaw", "neck-row"), default="jaw", help="head / torso cut of the preprocessing (neck-row: the earlier cut, to compare)")
+    real.add_argument("--test-fraction", type=_number(float, 0.0, 0.5, open_lo=True), default=0.15, help="fraction of the clip held out at its end, in (0, 0.5]")
+    real.add_argument("--focal", type=_positive, default=None, help="focal length in pixels at --size (default: preprocessing's guess)")
+    real.add_argument("--work", default="adnerf_bench_real", help="folder for the cached video, dataset and run")
+    real.add_argument("--lpips-backbone", default=None, help="AlexNet weights for LPIPS (default: the torch hub cache's alexnet-owt-7be5be79.pth, if there)")
+    real.add_argument("--lpips-linear", default=None, help="LPIPS linear layers (default: those the lpips package ships, if installed)")
+    real.add_argument("--seed", type=_number(int, 0), default=0, help="training seed")
+    real.add_argument("--plot", default=None, help="write a PNG of the true and rendered mouth opening over the held-out frames")
+    real.add_argument("--json", action="store_true", help="one JSON line on stdout, the table on stderr")
+    real.set_defaults(func=_cmd_bench_real)
     fbench = bench_sub.add_parser("features", help="speech feature extraction speed (seconds of audio per second)")
     fbench.add_argument("--media", default=None, help="audio/video file to use (default: 60 s of synthetic voiced audio)")
     fbench.add_argument("--seconds", type=_number(float, 1.0, 3600.0), default=60.0, help="length of the synthetic audio, 1 to 3600 s")

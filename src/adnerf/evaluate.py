@@ -1,7 +1,11 @@
 """Image metrics of a trained run against a dataset's held-out frames.
 
-* PSNR and SSIM (kornia) on full frames and on a square crop around the mouth (the canonical mouth
+* PSNR and SSIM (kornia) on full frames, on the head (PSNR over the true frame's head-label
+  pixels, SSIM on the head label's box) and on a square crop around the mouth (the canonical mouth
   point of the dataset projected with each frame's pose; side ``mouth_crop`` scene units).
+* With ``landmarks``: LMD, the inner-lip opening's correlation between render and truth and the
+  audio-visual offset (:mod:`adnerf.landmark_metrics`), from the dlib landmarks of both.
+* With an :class:`~adnerf.lpips.LPIPS` model: LPIPS on full frames.
 * The mouth opening seen in an image: the mean darkness of the mouth crop (luminance 0.5 and
   above counts 0, 0.1 and below counts 1; the open mouth's interior is dark, lips and skin are not). On synthetic data, the Pearson
   correlation over the test frames between this measure on the renders and the true jaw opening
@@ -13,16 +17,22 @@ from __future__ import annotations
 
 import json
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from kornia.metrics import psnr, ssim
 
-from .data import MOUTH_CROP, DatasetError, TalkingHeadDataset
+from .data import LABEL_HEAD, MOUTH_CROP, DatasetError, TalkingHeadDataset
 from .render_video import RenderedClip, render_frames
 from .train import Run
 
-__all__ = ["mouth_darkness", "evaluate_clip", "image_metrics", "mouth_boxes"]
+if TYPE_CHECKING:
+    from .lpips import LPIPS
+
+__all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes"]
+
+PSNR_CAP_DB = 100.0  # the PSNR reported for identical pixels (a finite number JSON can carry)
 
 
 def mouth_boxes(ds: TalkingHeadDataset, frames: list[int], crop: float = MOUTH_CROP) -> np.ndarray:
@@ -74,8 +84,52 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(a, b)[0, 1])
 
 
-def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip) -> dict:
-    """Metrics of rendered frames against the dataset's frames ``frames`` (in the same order)."""
+def head_metrics(pred: np.ndarray, target: np.ndarray, labels: np.ndarray) -> tuple[float | None, float | None]:
+    """PSNR over the head-label pixels and SSIM on the head label's box, means over the frames
+    that have a head (``None`` when none has); frames ``(n, H, W, 3)`` uint8, labels ``(n, H, W)``."""
+    psnrs, ssims = [], []
+    for p, t, lab in zip(pred, target, labels):
+        head = lab == LABEL_HEAD
+        if not head.any():
+            continue
+        mse = float((((p[head].astype(np.float64) - t[head]) / 255.0) ** 2).mean())
+        psnrs.append(PSNR_CAP_DB if mse == 0.0 else min(PSNR_CAP_DB, -10.0 * math.log10(mse)))
+        ys, xs = np.nonzero(head)
+        y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        if min(y1 - y0, x1 - x0) >= 7:
+            ssims.append(image_metrics(p[None, y0:y1, x0:x1], t[None, y0:y1, x0:x1])[1])
+    return (float(np.mean(psnrs)) if psnrs else None, float(np.mean(ssims)) if ssims else None)
+
+
+def landmark_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.ndarray) -> dict:
+    """Landmark metrics (:func:`adnerf.landmark_metrics.landmark_metrics`) of rendered frames,
+    from dlib's landmarks on them and on the true frames (searched around the true head label).
+    Frames where the detector misses a face take interpolated landmarks; their counts are
+    reported, and with a face in fewer than half of the frames the metrics are ``None``."""
+    from .landmark_metrics import landmark_metrics, mouth_opening
+    from .preprocess.landmarks import DlibFaceDetector, track_faces
+
+    detector = DlibFaceDetector()
+    labels = ds.parsing[frames]
+    true = track_faces(ds.frames[frames], detector, labels)
+    pred = track_faces(rendered, detector, labels)
+    out: dict = {"landmarks_found_true": int(true.detected.sum()), "landmarks_found_render": int(pred.detected.sum())}
+    if min(out["landmarks_found_true"], out["landmarks_found_render"]) < 0.5 * len(frames):
+        return out
+    series = {"mouth_opening_true_px": mouth_opening(true.landmarks).round(2).tolist(), "mouth_opening_render_px": mouth_opening(pred.landmarks).round(2).tolist()}
+    return {**out, **landmark_metrics(pred.landmarks, true.landmarks).as_dict(), **series}
+
+
+def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip, *, landmarks: bool = False, lpips: "LPIPS | None" = None) -> dict:
+    """Metrics of rendered frames against the dataset's frames ``frames`` (in the same order).
+
+    Args:
+        ds: The dataset.
+        frames: Its frame indices that ``clip`` renders.
+        clip: The rendered frames.
+        landmarks: Also the landmark metrics (dlib on renders and truth).
+        lpips: Also LPIPS with this model (:func:`adnerf.lpips.load_lpips`).
+    """
     gt = ds.frames[frames]
     full_psnr, full_ssim = image_metrics(clip.frames, gt)
     boxes = mouth_boxes(ds, frames)
@@ -89,6 +143,12 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip)
         "ssim_mouth": mouth_ssim,
         "render_fps": len(frames) / max(clip.seconds, 1e-9),
     }
+    out["psnr_head"], out["ssim_head"] = head_metrics(clip.frames, gt, ds.parsing[frames])
+    if landmarks:
+        out.update(landmark_evaluation(ds, frames, clip.frames))
+    if lpips is not None:
+        device = next(lpips.buffers()).device
+        out["lpips"] = float(np.mean([float(lpips(_to_tensor(clip.frames[i : i + 1]).to(device), _to_tensor(gt[i : i + 1]).to(device))[0]) for i in range(len(frames))]))
     if ds.truth is not None:
         jaw = ds.truth.jaw[frames]
         rendered = [mouth_darkness(c) for c in pred_mouth]
@@ -111,8 +171,9 @@ def check_matches_run(run: Run, ds: TalkingHeadDataset) -> None:
         raise DatasetError(f"{ds.root} does not match the run's training data ({'; '.join(differ)}); evaluate a run on a dataset of its own camera, frame rate and features")
 
 
-def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test") -> tuple[dict, RenderedClip]:
-    """Render a split with its own poses and audio windows and measure it (see the module docs).
+def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test", *, landmarks: bool = False, lpips: "LPIPS | None" = None) -> tuple[dict, RenderedClip]:
+    """Render a split with its own poses and audio windows and measure it (see the module docs;
+    ``landmarks`` and ``lpips`` as in :func:`evaluate_clip`).
 
     Raises:
         DatasetError: ``ds`` has another camera, frame rate or feature kind than the run's data.
@@ -125,6 +186,6 @@ def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test") -> tuple
         raise ValueError(f"the dataset's {split} split is empty")
     plate = ds.background.astype(np.float32) / 255.0
     clip = render_frames(run, ds.features[frames], ds.poses[frames], plate)
-    metrics = evaluate_clip(ds, frames, clip)
+    metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips)
     metrics["split"] = split
     return metrics, clip

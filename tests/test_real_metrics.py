@@ -1,0 +1,157 @@
+"""Metrics of the real-clip benchmark: landmark distance, lip sync and its offset, head-region
+PSNR, LPIPS from local weights, and ``adnerf bench real`` end to end on a small synthetic clip."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from adnerf.bench_real import bench_real, plot_mouth_opening
+from adnerf.cli import main
+from adnerf.evaluate import head_metrics
+from adnerf.landmark_metrics import av_offset, landmark_metrics, mouth_opening
+from adnerf.lpips import CHANNELS, AlexFeatures, find_lpips, load_lpips
+from adnerf.synth import SynthConfig, synthesize
+
+
+def _talking_landmarks(n: int = 40, seed: int = 0) -> np.ndarray:
+    """68 landmarks per frame of a face whose inner lips open and close irregularly."""
+    rng = np.random.default_rng(seed)
+    base = rng.uniform(20, 80, size=(68, 2))
+    base[0], base[16] = (10.0, 50.0), (90.0, 50.0)  # face width 80 px
+    opening = np.abs(np.convolve(rng.normal(size=n + 4), np.ones(5) / 5, mode="valid")) * 6
+    lms = np.repeat(base[None], n, axis=0)
+    for upper, lower in ((61, 67), (62, 66), (63, 65)):
+        lms[:, upper] = (50.0, 60.0)
+        lms[:, lower, 0] = 50.0
+        lms[:, lower, 1] = 60.0 + opening
+    return lms
+
+
+def test_landmark_metrics_known_answers() -> None:
+    true = _talking_landmarks()
+    same = landmark_metrics(true, true)
+    assert same.lmd_mouth_px == 0.0 and same.lmd_all_px == 0.0 and same.mouth_open_corr == pytest.approx(1.0) and same.av_offset_frames == 0
+    np.testing.assert_allclose(mouth_opening(true), true[:, 66, 1] - 60.0)
+    moved = true.copy()
+    moved[:, 48:68] += (3.0, 4.0)  # the mouth 5 px off
+    m = landmark_metrics(moved, true)
+    assert m.lmd_mouth_px == pytest.approx(5.0) and m.lmd_all_px == pytest.approx(5.0 * 20 / 68)
+    assert m.face_width_px == pytest.approx(80.0) and m.lmd_mouth == pytest.approx(5.0 / 80.0)
+    # A render whose mouth moves 2 frames late: the offset says +2, the other way round -2.
+    late = np.concatenate([true[:2], true[:-2]])
+    assert landmark_metrics(late, true).av_offset_frames == 2
+    early = np.concatenate([true[2:], true[-2:]])
+    assert landmark_metrics(early, true).av_offset_frames == -2
+    k, c = av_offset(mouth_opening(late), mouth_opening(true))
+    assert k == 2 and c == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        landmark_metrics(true[:, :60], true[:, :60])
+
+
+def test_head_psnr_of_a_known_error() -> None:
+    rng = np.random.default_rng(1)
+    target = rng.integers(20, 230, size=(3, 16, 16, 3), dtype=np.uint8)
+    labels = np.zeros((3, 16, 16), np.uint8)
+    labels[:, 2:12, 3:13] = 1
+    pred = target.copy()
+    pred[labels == 1] += 10  # an error of 10 levels on every head pixel, none elsewhere
+    pred[labels == 0] = 0  # off the head nothing counts
+    psnr, ssim = head_metrics(pred, target, labels)
+    assert psnr == pytest.approx(-10 * math.log10((10 / 255) ** 2))
+    assert ssim is not None and ssim < 1.0
+    assert head_metrics(target, target, labels)[0] == 100.0  # identical: the cap
+    assert head_metrics(pred, target, np.zeros_like(labels)) == (None, None)
+
+
+def _save_lpips_weights(folder: Path, seed: int = 0) -> tuple[Path, Path]:
+    """A random AlexNet in torchvision's layout (with a classifier, as torchvision saves it) and
+    LPIPS linear layers in the lpips package's layout."""
+    torch.manual_seed(seed)
+    backbone = AlexFeatures()
+    state = {**backbone.state_dict(), "classifier.1.weight": torch.zeros(4, 4)}
+    linear = {f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate(CHANNELS)}
+    torch.save(state, folder / "alexnet.pth")
+    torch.save(linear, folder / "alex_lin.pth")
+    return folder / "alexnet.pth", folder / "alex_lin.pth"
+
+
+def test_lpips_loads_local_weights_and_measures(tmp_path: Path) -> None:
+    backbone_path, linear_path = _save_lpips_weights(tmp_path)
+    assert find_lpips(backbone_path, linear_path) == (backbone_path, linear_path)
+    assert find_lpips(tmp_path / "missing.pth", linear_path) is None
+    model = load_lpips(backbone_path, linear_path)
+    g = torch.Generator().manual_seed(2)
+    a, b = torch.rand(2, 3, 64, 64, generator=g), torch.rand(2, 3, 64, 64, generator=g)
+    assert torch.allclose(model(a, a), torch.zeros(2)) and (model(a, b) > 0).all()
+    torch.testing.assert_close(model(a, b), model(b, a))
+    # Known answer with only the first layer weighted: by hand from conv1 + ReLU.
+    lin = torch.load(linear_path)
+    only_first = {k: (v if k.startswith("lin0") else torch.zeros_like(v)) for k, v in lin.items()}
+    torch.save(only_first, tmp_path / "first.pth")
+    first = load_lpips(backbone_path, tmp_path / "first.pth")
+    state = torch.load(backbone_path)
+    shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
+    scale = torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1)
+
+    def feat(x: torch.Tensor) -> torch.Tensor:
+        f = F.relu(F.conv2d(((2 * x - 1) - shift) / scale, state["features.0.weight"], state["features.0.bias"], stride=4, padding=2))
+        return f / (f.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+
+    expected = (lin["lin0.model.1.weight"] * (feat(a) - feat(b)).pow(2)).sum(1).mean((1, 2))
+    torch.testing.assert_close(first(a, b), expected)
+    with pytest.raises(ValueError, match="not LPIPS linear layers"):
+        load_lpips(backbone_path, backbone_path)
+    with pytest.raises(ValueError, match="torchvision's layout"):
+        load_lpips(linear_path, linear_path)
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return synthesize(tmp_path_factory.mktemp("real") / "scene", SynthConfig(seconds=3.0, size=96, voice="formant", seed=4)) / "video.mp4"
+
+
+def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    backbone_path, linear_path = _save_lpips_weights(tmp_path)
+    row = bench_real(clip, size=None, minutes=0.05, work=tmp_path / "work", lpips_backbone=backbone_path, lpips_linear=linear_path, progress=False, log=lambda m: None)
+    json.dumps(row)  # serialisable as it is
+    for key in ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "lpips"):
+        assert isinstance(row[key], (int, float)) and math.isfinite(row[key]), key
+    assert row["held_out_frames"] == 11 and row["landmarks_found_true"] == 11 and row["syncnet"] == "not implemented"
+    # Three seconds of training render no face dlib finds: then there is no LMD, and it says why.
+    assert ("lmd_mouth_px" in row) == (row["landmarks_found_render"] >= 0.5 * 11)
+    assert row["layers"]["lip_in_head"] >= 0.98 and Path(row["sheet"]).stat().st_size > 0
+    assert set(row["seconds"]) == {"video", "preprocess", "train_wall", "evaluate", "sheet"}
+    plot_mouth_opening(row, tmp_path / "mouth.png")
+    assert (tmp_path / "mouth.png").stat().st_size > 0
+    # Again: the dataset and the run are reused, and without LPIPS weights the column says so.
+    capsys.readouterr()
+    assert main(["bench", "real", str(clip), "--size", "0", "--minutes", "0.05", "--work", str(tmp_path / "work"), "--json", "--lpips-backbone", str(tmp_path / "none.pth")]) == 0
+    again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert again["lpips"] == "no weights" and again["seconds"]["preprocess"] < 1.0
+    assert again["psnr"] == pytest.approx(row["psnr"], abs=1e-6)  # the same run, rendered again
+
+
+def test_landmark_evaluation_of_true_and_delayed_frames(clip: Path, tmp_path: Path) -> None:
+    """Through the real detector: the true frames as renders give LMD 0 and perfect sync; the true
+    frames two frames late (early) give a positive (negative) offset. The cartoon's jaw moves
+    smoothly, so over 50 frames the correlation's peak is broad: within a frame of the delay."""
+    from adnerf.data import load_dataset
+    from adnerf.evaluate import landmark_evaluation
+    from adnerf.preprocess import PreprocessConfig, preprocess_video
+
+    preprocess_video(clip, tmp_path / "data", PreprocessConfig(focal=1.33 * 96))
+    ds = load_dataset(tmp_path / "data", truth=False)
+    frames = list(range(2, 52))
+    same = landmark_evaluation(ds, frames, ds.frames[frames])
+    assert same["landmarks_found_render"] == 50 and same["lmd_all_px"] == 0.0 and same["av_offset_frames"] == 0
+    late = landmark_evaluation(ds, frames, ds.frames[[f - 2 for f in frames]])
+    early = landmark_evaluation(ds, frames, ds.frames[[f + 2 for f in frames]])
+    assert late["av_offset_frames"] in (1, 2, 3) and early["av_offset_frames"] in (-1, -2, -3)
+    assert late["lmd_mouth_px"] > 0 and late["mouth_open_corr"] < same["mouth_open_corr"]
