@@ -123,7 +123,8 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     json.dumps(row)  # serialisable as it is
     for key in ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "lpips"):
         assert isinstance(row[key], (int, float)) and math.isfinite(row[key]), key
-    assert row["held_out_frames"] == 11 and row["landmarks_found_true"] == 11 and row["syncnet"] == "not implemented"
+    assert row["held_out_frames"] == row["frames"] == 11 and row["clip_frames"] == 75 and row["train_frames"] == 64
+    assert row["landmarks_found_true"] == 11 and row["syncnet"] == "not implemented"
     # Three seconds of training render no face dlib finds: then there is no LMD, and it says why.
     assert ("lmd_mouth_px" in row) == (row["landmarks_found_render"] >= 0.5 * 11)
     assert row["layers"]["lip_in_head"] >= 0.98 and Path(row["sheet"]).stat().st_size > 0
@@ -136,6 +137,11 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert again["lpips"] == "no weights" and again["seconds"]["preprocess"] < 1.0
     assert again["psnr"] == pytest.approx(row["psnr"], abs=1e-6)  # the same run, rendered again
+    # adnerf evaluate reports the same metrics for the run and its dataset.
+    assert main(["evaluate", row["run"], row["dataset"], "--json", "--lpips-backbone", str(backbone_path), "--lpips-linear", str(linear_path)]) == 0
+    ev = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("psnr", "psnr_head", "ssim_head", "psnr_mouth", "lpips", "landmarks_found_true"):
+        assert ev[key] == pytest.approx(row[key], abs=1e-6), key
 
 
 def test_landmark_evaluation_of_true_and_delayed_frames(clip: Path, tmp_path: Path) -> None:

@@ -38,13 +38,14 @@ HEAD_SHARE = 0.55  # of the training budget; the rest is the torso's (the demo's
 
 def resized_video(video: str | Path, size: int | None, folder: Path) -> tuple[Path, dict]:
     """The clip with its longer side ``size`` pixels (even sizes; ``None``: the clip itself),
-    written once into ``folder`` and reused; returns its path and ``{width, height, frames, fps}``."""
+    written once into ``folder`` and reused; returns its path and ``{width, height, clip_frames,
+    fps, source_size}``."""
     from .io import AudioTrack, read_video, write_video
 
     src = Path(video)
     video_data = read_video(src)
     h, w = video_data.frames.shape[1:3]
-    info = {"frames": int(len(video_data.frames)), "fps": float(video_data.fps), "source_size": [int(w), int(h)]}
+    info = {"clip_frames": int(len(video_data.frames)), "fps": float(video_data.fps), "source_size": [int(w), int(h)]}
     if size is None or max(h, w) == size:
         return src, {**info, "width": int(w), "height": int(h)}
     scale = size / max(h, w)
@@ -109,6 +110,7 @@ def bench_real(
     lpips_backbone: str | Path | None = None,
     lpips_linear: str | Path | None = None,
     seed: int = 0,
+    iterations: tuple[int, int] | None = None,
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict:
@@ -126,6 +128,8 @@ def bench_real(
         lpips_backbone: AlexNet weights for LPIPS (default: the torch hub cache's, if there).
         lpips_linear: LPIPS linear layers (default: the installed ``lpips`` package's, if any).
         seed: Training seed.
+        iterations: ``(head, torso)`` iterations instead of the schedule fitted to ``minutes``
+            (the probe's speed depends on the machine's load; comparisons want equal schedules).
         progress: Progress bars.
         log: Where step messages go.
 
@@ -157,16 +161,21 @@ def bench_real(
         preprocess_video(clip, data, pcfg, overwrite=data.exists())
     seconds["preprocess"] = time.perf_counter() - t0
 
-    run_dir = folder / f"run_{minutes:g}min_seed{seed}"
+    run_dir = folder / (f"run_{iterations[0]}+{iterations[1]}it_seed{seed}" if iterations else f"run_{minutes:g}min_seed{seed}")
     t0 = time.perf_counter()
     if (run_dir / "run.json").exists():
         log(f"continuing the run in {run_dir}")
         train(data, run_dir, device=device, resume=True, progress=progress)
     else:
-        per_iteration = _probe_seconds_per_iteration(data, folder, device, seed)
-        total = minutes * 60.0 / per_iteration
-        tcfg = TrainConfig(head_iters=max(1, round(HEAD_SHARE * total)), torso_iters=max(1, round((1 - HEAD_SHARE) * total)), seed=seed)
-        log(f"training {tcfg.head_iters} head + {tcfg.torso_iters} torso iterations ({per_iteration * 1e3:.0f} ms each) into {run_dir}")
+        if iterations is not None:
+            tcfg = TrainConfig(head_iters=iterations[0], torso_iters=iterations[1], seed=seed)
+            how = "given"
+        else:
+            per_iteration = _probe_seconds_per_iteration(data, folder, device, seed)
+            total = minutes * 60.0 / per_iteration
+            tcfg = TrainConfig(head_iters=max(1, round(HEAD_SHARE * total)), torso_iters=max(1, round((1 - HEAD_SHARE) * total)), seed=seed)
+            how = f"{per_iteration * 1e3:.0f} ms each, fitted to {minutes:g} min"
+        log(f"training {tcfg.head_iters} head + {tcfg.torso_iters} torso iterations ({how}) into {run_dir}")
         train(data, run_dir, config=tcfg, device=device, progress=progress)
     seconds["train_wall"] = time.perf_counter() - t0
 

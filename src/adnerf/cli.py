@@ -128,6 +128,8 @@ def _cmd_bench_fields(args: argparse.Namespace) -> int:
 def _cmd_bench_real(args: argparse.Namespace) -> int:
     from .bench_real import bench_real, plot_mouth_opening
 
+    if args.iters is not None and len(args.iters) != 2:
+        raise CliError(f"--iters takes HEAD,TORSO iterations; got {','.join(map(str, args.iters))}")
     try:
         row = bench_real(
             args.video,
@@ -141,6 +143,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
             lpips_backbone=args.lpips_backbone,
             lpips_linear=args.lpips_linear,
             seed=args.seed,
+            iterations=args.iters,
             log=lambda m: print(m, file=sys.stderr),
         )
     except ValueError as exc:
@@ -382,9 +385,19 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluate import evaluate_run
     from .train import load_run
 
-    run = load_run(args.run, _device(args.device))
+    from .lpips import find_lpips, load_lpips
+
+    device = _device(args.device)
+    run = load_run(args.run, device)
     ds = load_dataset(args.dataset)
-    metrics, _ = evaluate_run(run, ds, args.split)
+    weights = find_lpips(args.lpips_backbone, args.lpips_linear)
+    try:
+        model = load_lpips(*weights, device=device) if weights is not None else None
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    metrics, _ = evaluate_run(run, ds, args.split, landmarks=not args.no_landmarks, lpips=model)
+    metrics["lpips"] = metrics.get("lpips", "no weights")
+    metrics = {k: v for k, v in metrics.items() if not k.startswith("mouth_opening_")}  # the per-frame series: bench real --plot draws them
     if args.json:
         print(json.dumps(metrics))
     else:
@@ -457,6 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
     real.add_argument("--lpips-backbone", default=None, help="AlexNet weights for LPIPS (default: the torch hub cache's alexnet-owt-7be5be79.pth, if there)")
     real.add_argument("--lpips-linear", default=None, help="LPIPS linear layers (default: those the lpips package ships, if installed)")
     real.add_argument("--seed", type=_number(int, 0), default=0, help="training seed")
+    real.add_argument("--iters", type=_positive_int_list, default=None, help="HEAD,TORSO iterations instead of the schedule fitted to --minutes (equal schedules for comparisons)")
     real.add_argument("--plot", default=None, help="write a PNG of the true and rendered mouth opening over the held-out frames")
     real.add_argument("--json", action="store_true", help="one JSON line on stdout, the table on stderr")
     real.set_defaults(func=_cmd_bench_real)
@@ -547,11 +561,14 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("-o", "--output", required=True, help="output .mp4")
     rn.set_defaults(func=_cmd_render)
 
-    ev = sub.add_parser("evaluate", help="PSNR / SSIM (full frame and mouth) and mouth-opening correlation on held-out frames")
+    ev = sub.add_parser("evaluate", help="PSNR / SSIM (full frame, head, mouth), LMD, lip sync and LPIPS (with local weights) on held-out frames")
     ev.add_argument("run", help="run folder")
     ev.add_argument("dataset", help="dataset folder")
     ev.add_argument("--split", choices=("train", "test"), default="test")
     ev.add_argument("--device", default="cpu", help="cpu or cuda")
+    ev.add_argument("--no-landmarks", action="store_true", help="skip the landmark metrics (LMD, lip-sync correlation and offset; dlib on every frame twice)")
+    ev.add_argument("--lpips-backbone", default=None, help="AlexNet weights for LPIPS (default: the torch hub cache's alexnet-owt-7be5be79.pth, if there)")
+    ev.add_argument("--lpips-linear", default=None, help="LPIPS linear layers (default: those the lpips package ships, if installed)")
     ev.add_argument("--json", action="store_true", help="one JSON object on stdout")
     ev.set_defaults(func=_cmd_evaluate)
     return parser
