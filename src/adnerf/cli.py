@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -312,7 +313,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     cfg = _train_config(args)
     root = train(args.dataset, args.output, stage=args.stage, config=cfg, device=_device(args.device), resume=args.resume)
-    print(f"{root}: trained ({args.stage}); render with `adnerf render {root} --audio SPEECH -o out.mp4`")
+    if os.environ.get("RANK", "0") == "0":  # under torchrun, process 0 speaks for all
+        print(f"{root}: trained ({args.stage}); render with `adnerf render {root} --audio SPEECH -o out.mp4`")
     return 0
 
 

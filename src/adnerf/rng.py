@@ -9,24 +9,52 @@ numbers to where the data is. The same seed then gives the same samples on the C
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-__all__ = ["uniform"]
+__all__ = ["Shard", "uniform"]
 
 
-def uniform(shape: tuple[int, ...] | torch.Size, *, dtype: torch.dtype, device: torch.device | str, generator: torch.Generator | None = None) -> torch.Tensor:
+@dataclass(frozen=True)
+class Shard:
+    """A generator whose draws are for a batch split over ``count`` processes along its first
+    dimension: each process draws the whole batch's numbers and keeps its part ``index``, so the
+    generators of all processes stay in step and the parts together are exactly the draw a single
+    process makes (multi-process training, :mod:`adnerf.train`).
+
+    Attributes:
+        generator: The generator every process holds in the same state.
+        index: This process's part (its rank).
+        count: The number of parts (the world size).
+    """
+
+    generator: torch.Generator
+    index: int
+    count: int
+
+    @property
+    def device(self) -> torch.device:
+        return self.generator.device
+
+
+def uniform(shape: tuple[int, ...] | torch.Size, *, dtype: torch.dtype, device: torch.device | str, generator: "torch.Generator | Shard | None" = None) -> torch.Tensor:
     """Uniform numbers in ``[0, 1)`` of ``shape`` and ``dtype`` on ``device``.
 
     Args:
         shape: Output shape.
         dtype: Output dtype (a floating type).
         device: Where the result lives (the data's device).
-        generator: Optional generator; drawn on its own device, then moved to ``device``. Without
-            one, the draw uses ``device``'s default generator.
+        generator: Optional generator (or :class:`Shard`); drawn on its own device, then moved to
+            ``device``. Without one, the draw uses ``device``'s default generator.
 
     Returns:
         A tensor of ``shape`` on ``device``.
     """
     if generator is None:
         return torch.rand(shape, dtype=dtype, device=device)
+    if isinstance(generator, Shard):
+        n = shape[0]
+        whole = torch.rand((n * generator.count, *shape[1:]), dtype=dtype, device=generator.device, generator=generator.generator)
+        return whole[generator.index * n : (generator.index + 1) * n].to(device)
     return torch.rand(shape, dtype=dtype, device=generator.device, generator=generator).to(device)

@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from .atomic import atomic_path
+from .distributed import Ranks, init_ranks
 from .outputs import check_folder_output, ensure_writable
 from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
 from .fields import check_config_keys
@@ -317,19 +318,21 @@ class _Schedule:
         return self.base[0] * factor
 
 
-def _optimise(out: RenderOutput, target: torch.Tensor, mask: torch.Tensor, mask_weight: float, optimizer: torch.optim.Optimizer) -> tuple[float, float]:
+def _optimise(out: RenderOutput, target: torch.Tensor, mask: torch.Tensor, mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks()) -> tuple[float, float]:
     """One step on the MSE of the coarse and fine colours plus ``mask_weight`` times the MSE of
-    their opacities against the parsing mask; returns ``(loss, fine colour MSE)``."""
+    their opacities against the parsing mask; returns ``(loss, fine colour MSE)``, averaged over
+    the processes (whose gradients are averaged before the step)."""
     fine_mse = F.mse_loss(out.final.rgb.float(), target)
     loss = F.mse_loss(out.coarse.rgb.float(), target) + fine_mse
     if mask_weight > 0:
         m = mask.float()
         loss = loss + mask_weight * (F.mse_loss(out.coarse.opacity.float(), m) + F.mse_loss(out.final.opacity.float(), m))
     optimizer.zero_grad(set_to_none=True)
-    if loss.requires_grad:  # False when empty-space skipping left no sample on any ray: no step
+    if loss.requires_grad:  # False when empty-space skipping left no sample on any ray
         loss.backward()
+    if ranks.average_gradients([q for group in optimizer.param_groups for q in group["params"]]):
         optimizer.step()
-    return float(loss.detach()), float(fine_mse.detach())
+    return tuple(ranks.mean([float(loss.detach()), float(fine_mse.detach())]))  # type: ignore[return-value]
 
 
 def _psnr(mse: float) -> float:
@@ -337,8 +340,9 @@ def _psnr(mse: float) -> float:
 
 
 class _Trainer:
-    def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool) -> None:
-        self.root, self.ds, self.tcfg, self.device, self.progress = root, ds, tcfg, device, progress
+    def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool, ranks: Ranks = Ranks()) -> None:
+        self.root, self.ds, self.tcfg, self.device, self.ranks = root, ds, tcfg, device, ranks
+        self.progress = progress and ranks.main
         torch.manual_seed(tcfg.seed)
         self.model = TalkingHead(mcfg).to(device)
         self.camera = ds.meta.camera(device=device)
@@ -367,6 +371,8 @@ class _Trainer:
 
     # ---- checkpoints
     def save(self) -> None:
+        if not self.ranks.main:
+            return
         state = {
             "model": self.model.state_dict(),
             "opt_head": self.opt_head.state_dict(),
@@ -387,7 +393,7 @@ class _Trainer:
         self.generator.set_state(ckpt["generator"].cpu())  # loaded with map_location=device
         self.head_step, self.torso_step, self.elapsed = ckpt["head_step"], ckpt["torso_step"], ckpt["elapsed"]
         log = self.root / "log.jsonl"
-        if log.exists():
+        if log.exists() and self.ranks.main:
             done = {"head": self.head_step, "torso": self.torso_step}
             rows = [line for line in log.read_text().splitlines() if line.strip()]
             kept = []
@@ -403,6 +409,8 @@ class _Trainer:
                     tmp.write_text("".join(k + "\n" for k in kept))
 
     def log(self, row: dict) -> None:
+        if not self.ranks.main:
+            return
         with open(self.root / "log.jsonl", "a") as f:
             f.write(json.dumps(row) + "\n")
 
@@ -497,13 +505,14 @@ class _Trainer:
             mouth = self.mouth_pixels(pose)
             n_mouth = int(round(tcfg.mouth_rays * tcfg.rays)) if mouth.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
+            pix = self.ranks.part(pix)  # every process drew the same batch; it renders its part
             target = self.head_target(frame, pix)
             code = self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters)
             self.maybe_update_occupancy("head", step, tcfg.head_iters, pose, code)
             with mixed_precision(self.device, tcfg.amp):
-                out = render_part(self.model, "head", self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.generator)
+                out = render_part(self.model, "head", self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.ranks.shard(self.generator))
             self.samples += out.samples_evaluated
-            return _optimise(out, target, self.is_head[frame, pix], tcfg.mask_weight, self.opt_head)
+            return _optimise(out, target, self.is_head[frame, pix], tcfg.mask_weight, self.opt_head, self.ranks)
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
@@ -527,7 +536,8 @@ class _Trainer:
             pix = torch.nonzero(in_box | self.is_torso[frame])[:, 0]
             pose = self.ds.head_pose(frame, device=self.device)
             out[frame, pix] = render_head_on_plate(self.model, self.rays[pix], pose, codes[frame], self.plate[pix], amp=self.tcfg.amp)
-        _save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
+        if self.ranks.main:
+            _save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
         return out
 
     def torso_stage(self, max_steps: int | None) -> None:
@@ -549,12 +559,13 @@ class _Trainer:
             person = torch.nonzero(self.is_torso[frame])[:, 0]
             n_person = int(round(tcfg.torso_person_rays * tcfg.rays)) if person.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
+            pix = self.ranks.part(pix)
             target = self.frames[frame, pix]
             self.maybe_update_occupancy("torso", step, tcfg.torso_iters, pose, codes[frame])
             with mixed_precision(self.device, tcfg.amp):
-                out = render_part(self.model, "torso", self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.generator)
+                out = render_part(self.model, "torso", self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.ranks.shard(self.generator))
             self.samples += out.samples_evaluated
-            return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso)
+            return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso, self.ranks)
 
         self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
 
@@ -596,6 +607,7 @@ def train(
     if stage not in ("head", "torso", "all"):
         raise ValueError(f"stage must be head, torso or all; got {stage!r}")
     root = Path(run_dir)
+    ranks, device = init_ranks(device)
     ds = load_dataset(dataset, truth=False)
     run_json = root / "run.json"
     ckpt = None
@@ -621,23 +633,17 @@ def train(
     head_done = ckpt["head_step"] if ckpt else 0
     if stage == "torso" and head_done < tcfg.head_iters:
         raise RunError(f"stage 2 needs a finished stage 1 ({head_done}/{tcfg.head_iters} head iterations); run --stage head (with --resume) first")
+    if tcfg.rays % ranks.world:
+        raise RunError(f"{ranks.world} processes must split the {tcfg.rays} rays of a batch evenly; choose rays divisible by {ranks.world}")
     ensure_writable(root)
-    root.mkdir(parents=True, exist_ok=True)
-    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
-    doc = {
-        "format": RUN_FORMAT,
-        "version": RUN_VERSION,
-        "dataset": str(Path(dataset).resolve()),
-        "dataset_sha256": ds.fingerprint(),
-        "model": mcfg.to_dict(),
-        "train": asdict(tcfg),
-        "meta": meta,
-    }
-    _write_json_atomic(run_json, doc)
-    shutil.copyfile(Path(dataset) / "background.png", root / "background.png")
-    trainer = _Trainer(root, ds, mcfg, tcfg, device, progress)
+    devices = ranks.gather(str(device))
+    ranks.barrier()  # every process has checked the folder before process 0 writes into it
+    trainer = _Trainer(root, ds, mcfg, tcfg, device, progress, ranks)
     if ckpt is not None:
         trainer.load(ckpt)
+    if ranks.main:
+        _write_run(root, dataset, ds, mcfg, tcfg, {"world_size": ranks.world, "backend": ranks.backend, "devices": devices})
+    ranks.barrier()
     budget = max_steps
     if stage in ("head", "all"):
         before = trainer.head_step
@@ -648,5 +654,24 @@ def train(
         trainer.torso_stage(budget)
     if not (root / "checkpoint.pt").exists():
         trainer.save()
+    ranks.barrier()
     return root
+
+
+def _write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, distributed: dict) -> None:
+    """``run.json`` (with how the run is trained: processes, backend, devices) and the plate."""
+    root.mkdir(parents=True, exist_ok=True)
+    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
+    doc = {
+        "format": RUN_FORMAT,
+        "version": RUN_VERSION,
+        "dataset": str(Path(dataset).resolve()),
+        "dataset_sha256": ds.fingerprint(),
+        "model": mcfg.to_dict(),
+        "train": asdict(tcfg),
+        "meta": meta,
+        "distributed": distributed,
+    }
+    _write_json_atomic(root / "run.json", doc)
+    shutil.copyfile(Path(dataset) / "background.png", root / "background.png")
 
