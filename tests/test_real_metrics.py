@@ -124,7 +124,7 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     for key in ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "lpips"):
         assert isinstance(row[key], (int, float)) and math.isfinite(row[key]), key
     assert row["held_out_frames"] == row["frames"] == 11 and row["clip_frames"] == 75 and row["train_frames"] == 64
-    assert row["landmarks_found_true"] == 11 and row["syncnet"] == "not implemented"
+    assert row["landmarks_found_true"] == 11 and row["syncnet"] == "not implemented" and row["features"] == "logmel"
     # Three seconds of training render no face dlib finds: then there is no LMD, and it says why.
     assert ("lmd_mouth_px" in row) == (row["landmarks_found_render"] >= 0.5 * 11)
     assert row["layers"]["lip_in_head"] >= 0.98 and Path(row["sheet"]).stat().st_size > 0

@@ -104,6 +104,7 @@ def bench_real(
     minutes: float = 10.0,
     device: str = "cpu",
     cut: str = "jaw",
+    features: str = "logmel",
     test_fraction: float = 0.15,
     focal: float | None = None,
     work: str | Path = "adnerf_bench_real",
@@ -122,6 +123,7 @@ def bench_real(
         minutes: Training budget (both stages), minutes of training time.
         device: ``"cpu"`` or ``"cuda"``.
         cut: Head / torso cut of the preprocessing (``"jaw"``, or ``"neck-row"`` to compare).
+        features: Audio features of the dataset (``"logmel"`` or ``"phonemes"``).
         test_fraction: Fraction of the clip, at its end, held out.
         focal: Focal length in pixels at ``size`` (default: preprocessing's guess).
         work: Folder for the cached video, dataset and run (``<stem>_<size>_<cut>/`` inside).
@@ -145,7 +147,7 @@ def bench_real(
     if not minutes > 0 or not math.isfinite(minutes):
         raise ValueError(f"the training budget must be a positive number of minutes; got {minutes}")
     seconds: dict[str, float] = {}
-    folder = Path(work) / f"{Path(video).stem}_{size or 'native'}_{cut}"
+    folder = Path(work) / (f"{Path(video).stem}_{size or 'native'}_{cut}" + ("" if features == "logmel" else f"_{features}"))
     folder.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()
@@ -153,7 +155,7 @@ def bench_real(
     seconds["video"] = time.perf_counter() - t0
 
     data = folder / "data"
-    pcfg = PreprocessConfig(cut=cut, test_fraction=test_fraction, focal=focal)
+    pcfg = PreprocessConfig(cut=cut, features=features, test_fraction=test_fraction, focal=focal)
     t0 = time.perf_counter()
     report_path = data / "preprocess_report.json"
     if not (report_path.exists() and json.loads(report_path.read_text())["config"] == asdict(pcfg)):
@@ -198,6 +200,7 @@ def bench_real(
         **info,
         "size": size,
         "cut": cut,
+        "features": features,
         "held_out_frames": len(ds.meta.test),
         "train_frames": len(ds.meta.train),
         "budget_minutes": minutes,

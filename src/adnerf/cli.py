@@ -57,10 +57,8 @@ def _number(cast: type, lo: float | None = None, hi: float | None = None, *, ope
     return parse
 
 
-_finite = _number(float)
 _positive = _number(float, 0.0, open_lo=True)
 _count = _number(int, 0)
-_fraction = _number(float, 0.0, 1.0, open_lo=True)
 
 
 class _HelpFormatter(argparse.HelpFormatter):
@@ -138,6 +136,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
             minutes=args.minutes,
             device=_device(args.device),
             cut=args.cut,
+            features=args.features,
             test_fraction=args.test_fraction,
             focal=args.focal,
             work=args.work,
@@ -256,7 +255,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
             bar.close()
 
     report = preprocess_video(args.video, args.output, cfg, progress=progress, overwrite=args.overwrite)
-    keys = ("frames", "parse_face_failures", "face_detected", "face_interpolated", "pose_reprojection_rms_px", "plate_filled_fraction", "timings_s")
+    keys = ("frames", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "layers", "layers_warning", "pose_reprojection_rms_px", "plate_filled_fraction", "timings_s")
     print(json.dumps({k: report[k] for k in keys if k in report}, indent=1))
     print(f"{args.output}: dataset written (report: {args.output}/preprocess_report.json, .png)")
     return 0
@@ -466,6 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     real.add_argument("--minutes", type=_number(float, 0.0, 10000.0, open_lo=True), default=10.0, help="training budget for both stages, minutes of training time")
     real.add_argument("--device", default="cpu", help="cpu or cuda")
     real.add_argument("--cut", choices=("jaw", "neck-row"), default="jaw", help="head / torso cut of the preprocessing (neck-row: the earlier cut, to compare)")
+    real.add_argument("--features", choices=("logmel", "phonemes"), default="logmel", help="audio features of the dataset")
     real.add_argument("--test-fraction", type=_number(float, 0.0, 0.5, open_lo=True), default=0.15, help="fraction of the clip held out at its end, in (0, 0.5]")
     real.add_argument("--focal", type=_positive, default=None, help="focal length in pixels at --size (default: preprocessing's guess)")
     real.add_argument("--work", default="adnerf_bench_real", help="folder for the cached video, dataset and run")
