@@ -141,7 +141,7 @@ def bench_real(
     from .data import load_dataset
     from .evaluate import evaluate_run
     from .lpips import find_lpips, load_lpips
-    from .preprocess.pipeline import PreprocessConfig, preprocess_video
+    from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
     from .train import TrainConfig, load_run, train
 
     if not minutes > 0 or not math.isfinite(minutes):
@@ -160,7 +160,7 @@ def bench_real(
     report_path = data / "preprocess_report.json"
     if not (report_path.exists() and json.loads(report_path.read_text())["config"] == asdict(pcfg)):
         log(f"preprocessing {clip} into {data}")
-        preprocess_video(clip, data, pcfg, overwrite=data.exists())
+        preprocess_video(clip, data, pcfg, progress=step_bars() if progress else None, overwrite=data.exists())
     seconds["preprocess"] = time.perf_counter() - t0
 
     run_dir = folder / (f"run_{iterations[0]}+{iterations[1]}it_seed{seed}" if iterations else f"run_{minutes:g}min_seed{seed}")

@@ -239,22 +239,11 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
 
-    from .preprocess.pipeline import PreprocessConfig, preprocess_video
+    from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
     cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, focal=args.focal, test_fraction=args.test_fraction)
-    bars: dict[str, tqdm] = {}
-
-    def progress(step: str, done: int, total: int) -> None:
-        bar = bars.get(step)
-        if bar is None:
-            bar = bars[step] = tqdm(total=total, desc=step, unit="step" if total == 1 else "frame", leave=True)
-        bar.update(done - bar.n)
-        if done >= total:
-            bar.close()
-
-    report = preprocess_video(args.video, args.output, cfg, progress=progress, overwrite=args.overwrite)
+    report = preprocess_video(args.video, args.output, cfg, progress=step_bars(), overwrite=args.overwrite)
     keys = ("frames", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "layers", "layers_warning", "pose_reprojection_rms_px", "plate_filled_fraction", "timings_s")
     print(json.dumps({k: report[k] for k in keys if k in report}, indent=1))
     print(f"{args.output}: dataset written (report: {args.output}/preprocess_report.json, .png)")

@@ -48,7 +48,7 @@ from .headpose import project_points
 from .landmarks import NOSE_BASE, mouth_centres
 from .parsing import JAW_MARGIN, layer_check, split_at_landmarks
 
-__all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "STEPS"]
+__all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "step_bars", "STEPS"]
 
 STEPS = ("decode", "features", "parse", "face", "pose", "plate", "write")
 # Below these the report warns that the mouth is not in the head layer (issue measured on a real
@@ -194,6 +194,23 @@ class _Work:
 
 
 Bar = Callable[[str, int, int], None]
+
+
+def step_bars() -> Bar:
+    """A ``progress`` for :func:`preprocess_video` that shows one progress bar per step."""
+    from tqdm import tqdm
+
+    bars: dict[str, tqdm] = {}
+
+    def progress(step: str, done: int, total: int) -> None:
+        bar = bars.get(step)
+        if bar is None:
+            bar = bars[step] = tqdm(total=total, desc=step, unit="step" if total == 1 else "frame", leave=True)
+        bar.update(done - bar.n)
+        if done >= total:
+            bar.close()
+
+    return progress
 
 
 def _skin_fraction(frame: np.ndarray, mask: np.ndarray) -> float:
