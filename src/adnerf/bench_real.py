@@ -40,18 +40,19 @@ def resized_video(video: str | Path, size: int | None, folder: Path) -> tuple[Pa
     """The clip with its longer side ``size`` pixels (even sizes; ``None``: the clip itself),
     written once into ``folder`` and reused; returns its path and ``{width, height, clip_frames,
     fps, source_size}``."""
-    from .io import AudioTrack, read_video, write_video
+    from .io import AudioTrack, frame_times, probe, read_video, write_video
 
     src = Path(video)
-    video_data = read_video(src)
-    h, w = video_data.frames.shape[1:3]
-    info = {"clip_frames": int(len(video_data.frames)), "fps": float(video_data.fps), "source_size": [int(w), int(h)]}
+    meta = probe(src)  # no decoding: a cached copy is reused without reading the clip's frames
+    w, h = int(meta["width"]), int(meta["height"])
+    info = {"clip_frames": int(len(frame_times(src))), "fps": float(meta["fps"]), "source_size": [w, h]}
     if size is None or max(h, w) == size:
-        return src, {**info, "width": int(w), "height": int(h)}
+        return src, {**info, "width": w, "height": h}
     scale = size / max(h, w)
     nw, nh = 2 * round(w * scale / 2), 2 * round(h * scale / 2)
     out = folder / f"{src.stem}_{nw}x{nh}.mp4"
     if not out.exists():
+        video_data = read_video(src)
         frames = np.stack([cv2.resize(f, (nw, nh), interpolation=cv2.INTER_AREA) for f in video_data.frames])
         audio = video_data.audio
         if audio is not None:  # write_video plays sample 0 with frame 0: align the track to it
@@ -140,7 +141,7 @@ def bench_real(
     """
     from .data import load_dataset
     from .evaluate import evaluate_run
-    from .lpips import find_lpips, load_lpips
+    from .lpips import lpips_if_available
     from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
     from .train import TrainConfig, load_run, train
 
@@ -183,17 +184,14 @@ def bench_real(
 
     t0 = time.perf_counter()
     run, ds = load_run(run_dir, device), load_dataset(data, truth=False)
-    weights = find_lpips(lpips_backbone, lpips_linear)
-    model = load_lpips(*weights, device=device) if weights is not None else None
+    model = lpips_if_available(lpips_backbone, lpips_linear, device)
     metrics, rendered = evaluate_run(run, ds, "test", landmarks=True, lpips=model)
     seconds["evaluate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     sheet = _sheet(folder / "bench_real.png", ds, list(ds.meta.test), rendered.frames)
     seconds["sheet"] = time.perf_counter() - t0
 
-    import torch
-
-    elapsed = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["elapsed"]
+    elapsed = run.elapsed
     report = json.loads(report_path.read_text())
     return {
         "video": str(video),

@@ -375,14 +375,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluate import evaluate_run
     from .train import load_run
 
-    from .lpips import find_lpips, load_lpips
+    from .lpips import lpips_if_available
 
     device = _device(args.device)
     run = load_run(args.run, device)
     ds = load_dataset(args.dataset)
-    weights = find_lpips(args.lpips_backbone, args.lpips_linear)
     try:
-        model = load_lpips(*weights, device=device) if weights is not None else None
+        model = lpips_if_available(args.lpips_backbone, args.lpips_linear, device)
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     metrics, _ = evaluate_run(run, ds, args.split, landmarks=not args.no_landmarks, lpips=model)

@@ -24,6 +24,7 @@ import torch
 from kornia.metrics import psnr, ssim
 
 from .data import LABEL_HEAD, MOUTH_CROP, DatasetError, TalkingHeadDataset
+from .landmark_metrics import pearson
 from .render_video import RenderedClip, render_frames
 from .train import Run
 
@@ -75,13 +76,6 @@ def image_metrics(pred: np.ndarray, target: np.ndarray) -> tuple[float, float]:
 
 def _crops(frames: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return np.stack([f[y0:y1, x0:x1] for f, (x0, y0, x1, y1) in zip(frames, boxes)])
-
-
-def _pearson(a: np.ndarray, b: np.ndarray) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    if a.std() == 0 or b.std() == 0:
-        return float("nan")
-    return float(np.corrcoef(a, b)[0, 1])
 
 
 def head_metrics(pred: np.ndarray, target: np.ndarray, labels: np.ndarray) -> tuple[float | None, float | None]:
@@ -153,8 +147,8 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip,
         jaw = ds.truth.jaw[frames]
         rendered = [mouth_darkness(c) for c in pred_mouth]
         truth_seen = [mouth_darkness(c) for c in gt_mouth]
-        out["mouth_open_corr"] = _pearson(rendered, jaw)
-        out["mouth_open_corr_gt"] = _pearson(truth_seen, jaw)
+        out["mouth_open_corr"] = pearson(rendered, jaw)
+        out["mouth_open_corr_gt"] = pearson(truth_seen, jaw)
     return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in out.items()}
 
 

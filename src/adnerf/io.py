@@ -91,7 +91,8 @@ def _open(path: str | Path):
 
 
 def probe(path: str | Path) -> dict:
-    """Stream summary of a media file: ``{"video": bool, "audio": bool, "fps": float|None, "duration": float|None}``."""
+    """Stream summary of a media file: ``{"video": bool, "audio": bool, "fps": float|None,
+    "duration": float|None, "sample_rate": int|None, "width": int|None, "height": int|None}``."""
     with _open(path) as container:
         v = container.streams.video[0] if container.streams.video else None
         a = container.streams.audio[0] if container.streams.audio else None
@@ -101,6 +102,8 @@ def probe(path: str | Path) -> dict:
             "fps": float(v.average_rate) if v is not None and v.average_rate else None,
             "duration": float(container.duration / 1_000_000) if container.duration else None,
             "sample_rate": a.rate if a is not None else None,
+            "width": v.codec_context.width if v is not None else None,
+            "height": v.codec_context.height if v is not None else None,
         }
 
 

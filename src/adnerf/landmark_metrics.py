@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LandmarkMetrics", "av_offset", "landmark_metrics", "lmd", "mouth_opening"]
+__all__ = ["LandmarkMetrics", "av_offset", "landmark_metrics", "lmd", "mouth_opening", "pearson"]
 
 MOUTH = slice(48, 68)
 INNER_PAIRS = ((61, 67), (62, 66), (63, 65))  # upper and lower inner lip, left to right
@@ -38,10 +38,12 @@ def lmd(pred: np.ndarray, true: np.ndarray, points: slice = slice(None)) -> floa
     return float(np.linalg.norm(pred[:, points] - true[:, points], axis=-1).mean())
 
 
-def _pearson(a: np.ndarray, b: np.ndarray) -> float:
-    a, b = a - a.mean(), b - b.mean()
-    denom = float(np.sqrt((a * a).sum() * (b * b).sum()))
-    return float((a * b).sum() / denom) if denom > 0 else float("nan")
+def pearson(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation of two series; NaN when either is constant."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if a.std() == 0 or b.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(a, b)[0, 1])
 
 
 def av_offset(rendered: np.ndarray, true: np.ndarray, max_shift: int = 5) -> tuple[int, float]:
@@ -51,12 +53,12 @@ def av_offset(rendered: np.ndarray, true: np.ndarray, max_shift: int = 5) -> tup
     Shifts that leave fewer than 8 overlapping frames are not tried.
     """
     n = len(true)
-    best = (0, _pearson(rendered, true))
+    best = (0, pearson(rendered, true))
     for k in range(-max_shift, max_shift + 1):
         if n - abs(k) < 8 or k == 0:
             continue
         r, t = (rendered[k:], true[: n - k]) if k > 0 else (rendered[: n + k], true[-k:])
-        c = _pearson(r, t)
+        c = pearson(r, t)
         if np.isfinite(c) and (not np.isfinite(best[1]) or c > best[1]):
             best = (k, c)
     return best
@@ -98,4 +100,4 @@ def landmark_metrics(pred: np.ndarray, true: np.ndarray, max_shift: int = 5) -> 
     mouth_px, all_px = lmd(pred, true, MOUTH), lmd(pred, true)
     opening_pred, opening_true = mouth_opening(pred), mouth_opening(true)
     shift, corr = av_offset(opening_pred, opening_true, max_shift)
-    return LandmarkMetrics(mouth_px, all_px, mouth_px / width, all_px / width, _pearson(opening_pred, opening_true), shift, corr, width)
+    return LandmarkMetrics(mouth_px, all_px, mouth_px / width, all_px / width, pearson(opening_pred, opening_true), shift, corr, width)

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-__all__ = ["LPIPS", "AlexFeatures", "find_lpips", "load_lpips"]
+__all__ = ["LPIPS", "AlexFeatures", "find_lpips", "load_lpips", "lpips_if_available"]
 
 CHANNELS = (64, 192, 384, 256, 256)
 BACKBONE_FILE = "alexnet-owt-7be5be79.pth"
@@ -125,3 +125,14 @@ def find_lpips(backbone: str | Path | None = None, linear: str | Path | None = N
     if backbone is None or linear is None or not Path(backbone).is_file() or not Path(linear).is_file():
         return None
     return Path(backbone), Path(linear)
+
+
+def lpips_if_available(backbone: str | Path | None = None, linear: str | Path | None = None, device: str | torch.device = "cpu") -> LPIPS | None:
+    """:func:`load_lpips` of the weights :func:`find_lpips` finds, or ``None`` when they are not
+    on this machine (the caller reports "no weights").
+
+    Raises:
+        ValueError: Weights were found but cannot be loaded.
+    """
+    found = find_lpips(backbone, linear)
+    return None if found is None else load_lpips(*found, device=device)

@@ -25,7 +25,7 @@ import json
 import math
 import shutil
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -205,6 +205,7 @@ class Run:
         head_step: Finished stage-1 iterations.
         torso_step: Finished stage-2 iterations.
         meta: The dataset's ``meta.json`` content (camera, fps, boxes, feature kind).
+        elapsed: Training seconds per stage (``{"head": s, "torso": s}``), from the checkpoint.
     """
 
     root: Path
@@ -214,6 +215,7 @@ class Run:
     head_step: int
     torso_step: int
     meta: dict
+    elapsed: dict = field(default_factory=dict)
 
     @property
     def smooth_audio(self) -> bool:
@@ -278,7 +280,7 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
     _load_model_state(model, ckpt["model"], ckpt_path)
     model.eval()
-    return Run(root, Path(doc["dataset"]), model, TrainConfig.from_dict(doc["train"]), ckpt["head_step"], ckpt["torso_step"], doc["meta"])
+    return Run(root, Path(doc["dataset"]), model, TrainConfig.from_dict(doc["train"]), ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"])
 
 
 def _check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, root: Path) -> None:
