@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import json
 import shutil
 from pathlib import Path
@@ -235,3 +237,10 @@ def test_demo_refuses_a_folder_with_another_scene(tiny: Path, tmp_path: Path) ->
     for other in (SynthConfig(seconds=1.6, size=48), SynthConfig(seconds=1.6, size=32, test_fraction=0.5)):
         with pytest.raises(DatasetError, match="another scene"):
             check_reused_scene(meta, other, tiny)
+    # The jaw must be driven the same way: a scene from before visemes (its source says nothing
+    # of the mouth: a loudness jaw) is not the viseme scene of the same length.
+    assert "mouth=loudness" in meta.source
+    with pytest.raises(DatasetError, match="visemes jaw"):
+        check_reused_scene(meta, SynthConfig(seconds=1.6, size=32, voice="espeak", mouth="visemes", seed=3), tiny)
+    older = replace(meta, source=meta.source.replace(" mouth=loudness", ""))
+    check_reused_scene(older, TINY, tiny)

@@ -49,16 +49,20 @@ def new_background(height: int, width: int) -> np.ndarray:
 
 def check_reused_scene(meta: SceneMeta, config: SynthConfig, where: Path) -> None:
     """Raise :class:`~adnerf.data.DatasetError` if the scene in ``where`` is not the one ``config``
-    makes (length, size, frame rate, held-out frames), e.g. one left by an older demo: its figures
-    would be reported under this demo's settings."""
+    makes (length, size, frame rate, held-out frames, what drives the jaw), e.g. one left by an
+    older demo: its figures would be reported under this demo's settings."""
+    from .synth import espeak_available
+
     n = config.n_frames
     _, test = tail_split(n, config.test_fraction)
-    found = (meta.n_frames, meta.width, meta.height, meta.fps, list(meta.test))
-    wanted = (n, config.size, config.size, config.fps, test)
+    mouth = config.mouth if config.mouth != "auto" else ("visemes" if config.voice != "formant" and espeak_available() else "loudness")
+    found_mouth = "visemes" if "mouth=visemes" in meta.source else "loudness"  # scenes before visemes say nothing
+    found = (meta.n_frames, meta.width, meta.height, meta.fps, list(meta.test), found_mouth)
+    wanted = (n, config.size, config.size, config.fps, test, mouth)
     if found != wanted:
         raise DatasetError(
-            f"{where} holds another scene ({meta.source}; {meta.n_frames} frames, {len(meta.test)} held out) than this demo "
-            f"makes ({config.seconds:g} s at {config.fps:g} fps, {config.size} px, {len(test)} held out); "
+            f"{where} holds another scene ({meta.source}; {meta.n_frames} frames, {len(meta.test)} held out, {found_mouth} jaw) than this demo "
+            f"makes ({config.seconds:g} s at {config.fps:g} fps, {config.size} px, {len(test)} held out, {mouth} jaw); "
             "choose another output folder or delete that one"
         )
 

@@ -49,6 +49,7 @@ __all__ = [
     "logmel",
     "phoneme_logprobs",
     "speech_windows",
+    "voiced_loudness",
 ]
 
 FEATURE_RATE = 50.0  # features per second (DeepSpeech's and hama's rate)
@@ -354,3 +355,33 @@ def load_npy_windows(path: str | Path, n_frames: int | None = None) -> np.ndarra
     if n_frames is not None and arr.shape[0] != n_frames:
         raise MediaError(f"{p}: has {arr.shape[0]} windows but the video has {n_frames} frames")
     return arr.astype(np.float32)
+
+
+def voiced_loudness(samples: np.ndarray, rate: int, times: np.ndarray, window: float = 0.06) -> np.ndarray:
+    """How loud the voiced band (150-1000 Hz, where vowels carry their energy) is around each
+    time: the band's RMS over ``window`` seconds centred there, divided by its 98th percentile
+    over the clip and clipped to [0, 1] (all zeros for silence).
+
+    The synthetic scene's loudness-driven jaw, and the speech activity that a rendered mouth is
+    compared with when no truth of the mouth exists (driving by another voice).
+
+    Args:
+        samples: ``(n,)`` mono samples.
+        rate: Their sample rate.
+        times: ``(m,)`` seconds from the first sample.
+        window: Seconds of audio per value.
+    """
+    from scipy.signal import butter, sosfiltfilt
+
+    sos = butter(4, [150, 1000], btype="bandpass", fs=rate, output="sos")
+    band = sosfiltfilt(sos, np.asarray(samples, dtype=np.float64))
+    energy = np.concatenate([[0.0], np.cumsum(band**2)])
+    half = int(window * rate / 2)
+    centre = np.round(np.asarray(times) * rate).astype(int)
+    lo = np.clip(centre - half, 0, len(band))
+    hi = np.clip(centre + half, 0, len(band))
+    rms = np.sqrt(np.maximum(energy[hi] - energy[lo], 0.0) / np.maximum(hi - lo, 1))
+    ref = np.percentile(rms, 98)
+    if ref <= 0:
+        return np.zeros_like(rms)
+    return np.clip(rms / ref, 0.0, 1.0)

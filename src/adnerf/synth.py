@@ -13,31 +13,36 @@ dataset is exactly what a radiance field rendered with our cameras can reproduce
 * a torso (neck and shoulders wearing the photograph's orange suit) in camera space, whose smaller
   motion is a fixed function of the head pose (so a field conditioned on the pose can learn it);
 * a static background (``skimage.data.rocket()``), a smooth random head pose track, and
-* an audio track of speech-like sound (glottal pulses through vowel formants, bursts and pauses)
-  or, with ``voice="espeak"``, real synthetic speech from espeak-ng. The mouth opening of each
-  frame is the normalised loudness of the voiced band (150-1000 Hz) around the frame's time.
+* an audio track: real synthetic speech from espeak-ng (its library, which also reports when each
+  phoneme is spoken; :mod:`adnerf.espeak`) in any of its voices and rates, or, where espeak-ng is
+  missing, speech-like sound (glottal pulses through vowel formants, bursts and pauses).
+
+The jaw follows *what is said*, not how loud: with espeak-ng speech the opening of each frame is
+the viseme track of the phonemes being spoken (:mod:`adnerf.visemes`: closed lips for p / b / m,
+wide open for "ah", smoothed as articulators move), so the same sentences in another voice or at
+another speed have their own exact truth. Formant sound has no phonemes; its jaw opens with the
+normalised loudness of the voiced band (150-1000 Hz), as ``mouth="loudness"`` does for any audio.
 """
 
 from __future__ import annotations
 
 import math
-import shutil
-import subprocess
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 import trimesh
 
 from .data import LABEL_HEAD, LABEL_TORSO, SceneMeta, Truth, save_dataset, tail_split
-from .features import FeatureSpec, speech_windows
-from .io import AudioTrack, read_audio, write_video
+from .espeak import PAUSE, Phoneme, espeak_ready, speak
+from .features import FeatureSpec, speech_windows, voiced_loudness
+from .io import AudioTrack, write_video
 from .outputs import check_folder_output
+from .visemes import jaw_track
 
-__all__ = ["SynthConfig", "HeadModel", "TorsoModel", "background_plate", "render_frame", "speech_audio", "mouth_opening", "pose_track", "synthesize"]
+__all__ = ["SynthConfig", "Speech", "HeadModel", "TorsoModel", "background_plate", "espeak_speech", "jaw_opening", "render_frame", "speech_audio", "mouth_opening", "pose_track", "synthesize"]
 
 SAMPLE_RATE = 16000
 HEAD_RADII = np.array([0.8, 1.0, 0.9])
@@ -79,8 +84,12 @@ class SynthConfig:
         seed: Seed of the pose track and the speech.
         voice: ``"formant"`` (built-in speech-like sound), ``"espeak"`` (espeak-ng speech; must be
             installed) or ``"auto"`` (espeak-ng when installed).
-        features: Audio feature kind stored with the dataset (see :class:`FeatureSpec`). The
-            default ``"logmel"`` sees the loudness that drives the synthetic mouth directly.
+        speaker: espeak-ng voice of the speech (``"en"``, ``"en+f3"`` ...).
+        words_per_minute: Speaking rate of the espeak-ng speech.
+        mouth: What opens the jaw: ``"visemes"`` (the phonemes being spoken, from espeak-ng's
+            timings; see :mod:`adnerf.visemes`), ``"loudness"`` (the voiced band's loudness) or
+            ``"auto"`` (visemes for espeak-ng speech, loudness for formant sound).
+        features: Audio feature kind stored with the dataset (see :class:`FeatureSpec`).
         test_fraction: Fraction of frames, at the end of the clip, held out for testing.
         max_yaw: Amplitude of the head's yaw in degrees (pitch and roll are smaller).
     """
@@ -90,6 +99,9 @@ class SynthConfig:
     fps: float = 25.0
     seed: int = 0
     voice: str = "auto"
+    speaker: str = "en"
+    words_per_minute: int = 150
+    mouth: str = "auto"
     features: str = "logmel"
     test_fraction: float = 0.15
     max_yaw: float = 20.0
@@ -109,6 +121,12 @@ class SynthConfig:
             raise ValueError(f"test_fraction must lie in (0, 1); got {self.test_fraction}")
         if self.voice not in ("auto", "formant", "espeak"):
             raise ValueError(f"voice must be auto, formant or espeak; got {self.voice!r}")
+        if self.mouth not in ("auto", "visemes", "loudness"):
+            raise ValueError(f"mouth must be auto, visemes or loudness; got {self.mouth!r}")
+        if self.mouth == "visemes" and self.voice == "formant":
+            raise ValueError("mouth='visemes' needs espeak-ng speech (voice 'espeak' or 'auto'); formant sound has no phonemes")
+        if not (isinstance(self.words_per_minute, int) and 80 <= self.words_per_minute <= 450):
+            raise ValueError(f"words_per_minute must be an integer in [80, 450]; got {self.words_per_minute!r}")
         if self.features not in ("logmel", "phonemes"):
             raise ValueError(f"features must be logmel or phonemes; got {self.features!r}")
         if self.n_frames * self.size**2 > SYNTH_MAX_PIXELS:
@@ -171,60 +189,92 @@ def formant_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0) -> np
 
 
 def espeak_available() -> bool:
-    """Whether the ``espeak-ng`` program is on the PATH."""
-    return shutil.which("espeak-ng") is not None
+    """Whether espeak-ng's library can speak here (see :mod:`adnerf.espeak`)."""
+    return espeak_ready()
 
 
-def espeak_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0) -> np.ndarray:
-    """Real synthetic English speech from espeak-ng, sentences separated by pauses, cut or padded
-    to ``seconds``. Returns float32 ``(n,)``."""
+@dataclass(frozen=True)
+class Speech:
+    """The scene's audio and what is known of what it says.
+
+    Attributes:
+        samples: ``(n,)`` float32 mono samples at :data:`SAMPLE_RATE`, peak 0.8.
+        voice: ``"espeak"`` or ``"formant"``.
+        phonemes: For espeak-ng speech, every phoneme with its start time in seconds from the
+            first sample (pauses between sentences included); ``None`` for formant sound.
+    """
+
+    samples: np.ndarray
+    voice: str
+    phonemes: tuple[Phoneme, ...] | None = None
+
+
+def espeak_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0, *, speaker: str = "en", words_per_minute: int = 150, sentences: Sequence[str] = SENTENCES) -> Speech:
+    """Real synthetic speech from espeak-ng: ``sentences`` in an order drawn from ``seed``,
+    separated by pauses of 0.25-0.6 s, cut or padded to ``seconds``, with each phoneme's time.
+
+    Args:
+        seconds: Length of the audio.
+        rate: Sample rate of the result.
+        seed: Seed of the sentence order and the pauses.
+        speaker: espeak-ng voice (``"en"``, ``"en+f3"`` ...; see :func:`adnerf.espeak.speak`).
+        words_per_minute: Speaking rate.
+        sentences: What is said, repeated as needed.
+    """
+    from scipy.signal import resample_poly
+
     if not espeak_available():
         raise RuntimeError("espeak-ng is not installed (apt install espeak-ng), or use voice='formant'")
     rng = np.random.default_rng(seed)
-    order = rng.permutation(len(SENTENCES))
+    order = rng.permutation(len(sentences))
+    want = int(round(seconds * rate))
     pieces: list[np.ndarray] = []
-    total = 0
-    with tempfile.TemporaryDirectory() as tmp:
-        k = 0
-        while total < seconds * rate:
-            wav = Path(tmp) / f"s{k}.wav"
-            text = SENTENCES[order[k % len(order)]]
-            subprocess.run(["espeak-ng", "-s", "150", "-w", str(wav), text], check=True, capture_output=True)
-            track = read_audio(wav, sample_rate=rate)
-            pause = np.zeros(int(rng.uniform(0.25, 0.6) * rate), dtype=np.float32)
-            pieces += [track.samples, pause]
-            total += len(track.samples) + len(pause)
-            k += 1
-    out = np.concatenate(pieces)[: int(round(seconds * rate))]
-    out = np.pad(out, (0, int(round(seconds * rate)) - len(out)))
+    phonemes: list[Phoneme] = []
+    total, k = 0, 0
+    while total < want:
+        said = speak(sentences[order[k % len(order)]], speaker, words_per_minute)
+        g = math.gcd(rate, said.sample_rate)
+        samples = resample_poly(said.samples.astype(np.float64), rate // g, said.sample_rate // g).astype(np.float32)
+        phonemes += [Phoneme(total / rate + p.start, p.ipa) for p in said.phonemes]
+        pause = np.zeros(int(rng.uniform(0.25, 0.6) * rate), dtype=np.float32)
+        phonemes.append(Phoneme((total + len(samples)) / rate, PAUSE))
+        pieces += [samples, pause]
+        total += len(samples) + len(pause)
+        k += 1
+    out = np.concatenate(pieces)[:want]
+    out = np.pad(out, (0, want - len(out)))
     peak = np.abs(out).max()
-    return (0.8 * out / peak if peak > 0 else out).astype(np.float32)
+    out = (0.8 * out / peak if peak > 0 else out).astype(np.float32)
+    return Speech(out, "espeak", tuple(p for p in phonemes if p.start < seconds))
 
 
-def speech_audio(seconds: float, voice: str = "auto", seed: int = 0, rate: int = SAMPLE_RATE) -> tuple[np.ndarray, str]:
-    """The scene's audio and the voice used (``"espeak"`` or ``"formant"``)."""
+def speech_audio(seconds: float, voice: str = "auto", seed: int = 0, rate: int = SAMPLE_RATE, *, speaker: str = "en", words_per_minute: int = 150) -> Speech:
+    """The scene's audio: espeak-ng speech (``voice`` ``"espeak"``, or ``"auto"`` where espeak-ng
+    is installed; ``speaker`` and ``words_per_minute`` as in :func:`espeak_speech`) or the
+    built-in formant sound."""
     if voice == "espeak" or (voice == "auto" and espeak_available()):
-        return espeak_speech(seconds, rate, seed), "espeak"
-    return formant_speech(seconds, rate, seed), "formant"
+        return espeak_speech(seconds, rate, seed, speaker=speaker, words_per_minute=words_per_minute)
+    return Speech(formant_speech(seconds, rate, seed), "formant")
+
+
+def jaw_opening(speech: Speech, times: np.ndarray, mouth: str = "auto") -> tuple[np.ndarray, str]:
+    """The scene's jaw opening in [0, 1] at ``times`` and what drove it (``"visemes"`` or
+    ``"loudness"``; ``mouth`` as in :class:`SynthConfig`).
+
+    Raises:
+        ValueError: ``mouth="visemes"`` for speech without phoneme timings.
+    """
+    if mouth == "visemes" or (mouth == "auto" and speech.phonemes is not None):
+        if speech.phonemes is None:
+            raise ValueError("mouth='visemes' needs speech with phoneme timings (espeak-ng)")
+        return jaw_track(speech.phonemes, times, end=len(speech.samples) / SAMPLE_RATE), "visemes"
+    return mouth_opening(speech.samples, SAMPLE_RATE, times), "loudness"
 
 
 def mouth_opening(samples: np.ndarray, rate: int, times: np.ndarray, window: float = 0.06) -> np.ndarray:
-    """Mouth opening in ``[0, 1]`` at each time: the RMS of the 150-1000 Hz band over ``window``
-    seconds centred there, divided by its 98th percentile over the clip and clipped."""
-    from scipy.signal import butter, sosfiltfilt
-
-    sos = butter(4, [150, 1000], btype="bandpass", fs=rate, output="sos")
-    band = sosfiltfilt(sos, samples.astype(np.float64))
-    energy = np.concatenate([[0.0], np.cumsum(band**2)])
-    half = int(window * rate / 2)
-    centre = np.round(np.asarray(times) * rate).astype(int)
-    lo = np.clip(centre - half, 0, len(band))
-    hi = np.clip(centre + half, 0, len(band))
-    rms = np.sqrt((energy[hi] - energy[lo]) / np.maximum(hi - lo, 1))
-    ref = np.percentile(rms, 98)
-    if ref <= 0:
-        return np.zeros_like(rms)
-    return np.clip(rms / ref, 0.0, 1.0)
+    """The loudness-driven jaw: :func:`adnerf.features.voiced_loudness` (the voiced band's RMS
+    around each time, normalised by its 98th percentile over the clip, in [0, 1])."""
+    return voiced_loudness(samples, rate, times, window)
 
 
 # ------------------------------------------------------------------------------------------ pose
@@ -471,9 +521,10 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
     check_folder_output(out_dir, "dataset", overwrite=overwrite)
     size = config.size
     n = config.n_frames
-    samples, voice = speech_audio(config.seconds, config.voice, config.seed)
+    speech = speech_audio(config.seconds, config.voice, config.seed, speaker=config.speaker, words_per_minute=config.words_per_minute)
+    samples, voice = speech.samples, speech.voice
     times = np.arange(n) / config.fps
-    jaw = mouth_opening(samples, SAMPLE_RATE, times)
+    jaw, mouth = jaw_opening(speech, times, config.mouth)
     poses = pose_track(n, config.fps, config.seed, config.max_yaw)
     head, torso = HeadModel(size), TorsoModel(size)
     background = background_plate(size)
@@ -504,7 +555,7 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
         n_frames=n,
         train=train,
         test=test,
-        source=f"adnerf synth: seconds={config.seconds} size={size} fps={config.fps} seed={config.seed} voice={voice}",
+        source=f"adnerf synth: seconds={config.seconds} size={size} fps={config.fps} seed={config.seed} voice={voice}" + (f" speaker={config.speaker} wpm={config.words_per_minute}" if voice == "espeak" else "") + f" mouth={mouth}",
     )
 
     def add_video(folder: Path) -> None:
