@@ -12,7 +12,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from adnerf.bench_real import bench_real, plot_mouth_opening
+from adnerf.bench_real import bench_real, plot_mouth_opening, speech_follow
 from adnerf.cli import main
 from adnerf.evaluate import head_metrics
 from adnerf.landmark_metrics import av_offset, landmark_metrics, mouth_opening
@@ -112,6 +112,16 @@ def test_lpips_loads_local_weights_and_measures(tmp_path: Path) -> None:
         load_lpips(linear_path, linear_path)
 
 
+def test_speech_follow_finds_a_late_mouth() -> None:
+    rng = np.random.default_rng(0)
+    activity = np.convolve(rng.random(120), np.ones(5) / 5, mode="same")
+    late = np.concatenate([np.full(2, activity[0]), activity[:-2]])  # the lips move 2 frames after the sound
+    row = speech_follow(5.0 + 10.0 * late, activity)
+    assert row["offset"] == 2 and row["corr_at_offset"] == pytest.approx(1.0, abs=1e-6) and row["corr"] < 0.9
+    assert speech_follow(activity, activity) == {"corr": 1.0, "offset": 0, "corr_at_offset": 1.0}
+    assert speech_follow(np.zeros(20), activity[:20])["corr"] is None  # a still mouth has no correlation
+
+
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return synthesize(tmp_path_factory.mktemp("real") / "scene", SynthConfig(seconds=3.0, size=96, voice="formant", seed=4)) / "video.mp4"
@@ -133,9 +143,19 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     assert (tmp_path / "mouth.png").stat().st_size > 0
     # Again: the dataset and the run are reused, and without LPIPS weights the column says so.
     capsys.readouterr()
-    assert main(["bench", "real", str(clip), "--size", "0", "--minutes", "0.05", "--work", str(tmp_path / "work"), "--json", "--lpips-backbone", str(tmp_path / "none.pth")]) == 0
+    drive = clip.parent / "audio.wav"
+    argv = ["bench", "real", str(clip), "--size", "0", "--minutes", "0.05", "--work", str(tmp_path / "work"), "--json", "--lpips-backbone", str(tmp_path / "none.pth")]
+    assert main([*argv, "--drive", str(drive)]) == 0
     again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert again["lpips"] == "no weights" and again["seconds"]["preprocess"] < 1.0
+    # Driven by other speech (here the clip's whole audio): one row per file, after the clip's own
+    # held-out audio's rows (true frames and render) when landmarks were found.
+    driven = again["driven"]
+    assert driven[-1]["audio"] == str(drive) and driven[-1]["frames"] == 75 and "landmarks_found" in driven[-1]
+    assert len(driven) == 1 + 2 * ("mouth_opening_true_px" in row)
+    with pytest.raises(ValueError, match="no such audio file"):
+        bench_real(clip, size=None, minutes=0.05, work=tmp_path / "never", drive=(tmp_path / "missing.wav",), progress=False, log=lambda m: None)
+    assert not (tmp_path / "never").exists()
     assert again["psnr"] == pytest.approx(row["psnr"], abs=1e-6)  # the same run, rendered again
     # adnerf evaluate reports the same metrics for the run and its dataset.
     assert main(["evaluate", row["run"], row["dataset"], "--json", "--lpips-backbone", str(backbone_path), "--lpips-linear", str(linear_path)]) == 0

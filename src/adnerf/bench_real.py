@@ -14,6 +14,12 @@ Steps, each timed (the times go into the result):
    label and the mouth crop; LMD; mouth-opening correlation and audio-visual offset; LPIPS where
    weights are on this machine).
 5. **sheet**: a contact sheet of true and rendered held-out frames with their mouths enlarged.
+6. **drive** (with ``drive``): other speech (another speaker, another language) drives the run
+   over the held-out poses. No true frames exist for it, so the rendered inner-lip opening (dlib
+   landmarks) is compared with the driving audio's own speech activity (the voiced band's
+   loudness, :func:`adnerf.features.voiced_loudness`): their correlation and the shift that
+   maximises it (> 0: the mouth is late). The clip's own held-out audio gets the same measure, for
+   the true frames and for the render, as the reference.
 
 The result is one dict (``--json`` prints it as one line) and ``WORK/bench_real.png``.
 """
@@ -31,7 +37,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-__all__ = ["bench_real", "plot_mouth_opening", "resized_video"]
+__all__ = ["bench_real", "drive_with_speech", "plot_mouth_opening", "resized_video", "speech_follow"]
 
 HEAD_SHARE = 0.55  # of the training budget; the rest is the torso's (the demo's 3600 : 3000)
 
@@ -98,6 +104,49 @@ def _sheet(path: Path, ds, frames: list[int], rendered: np.ndarray, count: int =
     return contact_sheet(path, rows, ["true (held out)", "render", "true mouth", "rendered mouth"], [f"frame {frames[k]}" for k in picks])
 
 
+def speech_follow(opening_px: np.ndarray, activity: np.ndarray) -> dict:
+    """How a lip-opening series follows the speech activity of the audio over the same frames
+    (:func:`adnerf.bench_voices.mouth_follow`: ``corr``, ``offset``, ``corr_at_offset``)."""
+    from .bench_voices import mouth_follow
+
+    return mouth_follow(opening_px, activity)
+
+
+def _activity(samples: np.ndarray, rate: int, times: np.ndarray) -> np.ndarray:
+    from .features import voiced_loudness
+
+    return voiced_loudness(samples, rate, times)
+
+
+def drive_with_speech(run, ds, audio_path: str | Path) -> dict:
+    """Render ``run`` driven by the speech in ``audio_path`` over the dataset's held-out poses
+    (played forwards and backwards) and measure how the rendered lips follow that speech.
+
+    Returns:
+        ``audio``, ``seconds``, ``frames``, ``landmarks_found`` and :func:`speech_follow`'s
+        figures (``None`` when landmarks are found in fewer than half of the frames).
+    """
+    from .data import LABEL_HEAD
+    from .io import read_audio
+    from .landmark_metrics import mouth_opening
+    from .preprocess.landmarks import DlibFaceDetector, track_faces
+    from .render_video import audio_frames, pingpong, render_frames
+
+    audio = read_audio(audio_path, sample_rate=16000)
+    fps = ds.meta.fps
+    windows = audio_frames(audio, fps, run.meta["feature_kind"], str(audio_path))
+    n = len(windows)
+    poses = pingpong(ds.poses[list(ds.meta.test)], n)
+    clip = render_frames(run, windows, poses, ds.background.astype(np.float32) / 255.0)
+    labels = np.where(clip.head_opacity > 0.5, LABEL_HEAD, 0).astype(np.uint8)
+    track = track_faces(clip.frames, DlibFaceDetector(), labels)
+    row = {"audio": str(audio_path), "seconds": round(audio.duration, 2), "frames": n, "landmarks_found": int(track.detected.sum())}
+    if track.detected.sum() < 0.5 * n:
+        return {**row, "corr": None, "offset": None, "corr_at_offset": None}
+    activity = _activity(audio.samples, audio.sample_rate, np.arange(n) / fps)
+    return {**row, **speech_follow(mouth_opening(track.landmarks), activity)}
+
+
 def bench_real(
     video: str | Path,
     *,
@@ -113,6 +162,7 @@ def bench_real(
     lpips_linear: str | Path | None = None,
     seed: int = 0,
     iterations: tuple[int, int] | None = None,
+    drive: tuple[str | Path, ...] = (),
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict:
@@ -133,6 +183,7 @@ def bench_real(
         seed: Training seed.
         iterations: ``(head, torso)`` iterations instead of the schedule fitted to ``minutes``
             (the probe's speed depends on the machine's load; comparisons want equal schedules).
+        drive: Other speech files to drive the trained run with (step 6).
         progress: Progress bars.
         log: Where step messages go.
 
@@ -147,6 +198,9 @@ def bench_real(
 
     if not minutes > 0 or not math.isfinite(minutes):
         raise ValueError(f"the training budget must be a positive number of minutes; got {minutes}")
+    for path in drive:  # before hours of work
+        if not Path(path).is_file():
+            raise ValueError(f"{path}: no such audio file to drive the run with")
     seconds: dict[str, float] = {}
     folder = Path(work) / (f"{Path(video).stem}_{size or 'native'}_{cut}" + ("" if features == "logmel" else f"_{features}"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -191,6 +245,20 @@ def bench_real(
     sheet = _sheet(folder / "bench_real.png", ds, list(ds.meta.test), rendered.frames)
     seconds["sheet"] = time.perf_counter() - t0
 
+    driven: list[dict] = []
+    if drive:
+        t0 = time.perf_counter()
+        test = list(ds.meta.test)
+        activity = _activity(ds.audio.samples, ds.audio.sample_rate, np.asarray(test) / ds.meta.fps - ds.audio.start)
+        own = {"audio": "the clip's own held-out audio", "seconds": round(len(test) / ds.meta.fps, 2), "frames": len(test)}
+        if "mouth_opening_true_px" in metrics:
+            driven.append({**own, "lips": "true frames", **speech_follow(np.asarray(metrics["mouth_opening_true_px"]), activity)})
+            driven.append({**own, "lips": "render", **speech_follow(np.asarray(metrics["mouth_opening_render_px"]), activity)})
+        for path in drive:
+            log(f"driving the run with {path}")
+            driven.append({**drive_with_speech(run, ds, path), "lips": "render"})
+        seconds["drive"] = time.perf_counter() - t0
+
     elapsed = run.elapsed
     report = json.loads(report_path.read_text())
     return {
@@ -210,6 +278,7 @@ def bench_real(
         **metrics,
         "lpips": metrics.get("lpips", "no weights"),
         "syncnet": "not implemented",
+        "driven": driven,
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
         "sheet": str(sheet),
         "dataset": str(data),

@@ -37,6 +37,19 @@ _positive_int_list = _positive_list(int, "integers")
 _positive_float_list = _positive_list(float, "numbers")
 
 
+def _head_torso_iters(text: str) -> tuple[int, int]:
+    """An argparse type: ``HEAD,TORSO`` positive iteration counts."""
+    values = _positive_int_list(text)
+    if len(values) != 2:
+        raise argparse.ArgumentTypeError(f"expected HEAD,TORSO iterations, got {text!r}")
+    return values
+
+
+def _log(message: str) -> None:
+    """Step messages of long commands: on stderr, so that --json output stays clean."""
+    print(message, file=sys.stderr)
+
+
 def _number(cast: type, lo: float | None = None, hi: float | None = None, *, open_lo: bool = False):
     """An argparse type: a finite ``cast`` (int or float) in ``[lo, hi]`` (``(lo, hi]`` with ``open_lo``)."""
 
@@ -127,8 +140,6 @@ def _cmd_bench_fields(args: argparse.Namespace) -> int:
 def _cmd_bench_real(args: argparse.Namespace) -> int:
     from .bench_real import bench_real, plot_mouth_opening
 
-    if args.iters is not None and len(args.iters) != 2:
-        raise CliError(f"--iters takes HEAD,TORSO iterations; got {','.join(map(str, args.iters))}")
     try:
         row = bench_real(
             args.video,
@@ -144,16 +155,40 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
             lpips_linear=args.lpips_linear,
             seed=args.seed,
             iterations=args.iters,
-            log=lambda m: print(m, file=sys.stderr),
+            drive=tuple(args.drive),
+            log=_log,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "mouth_open_corr", "av_offset_frames", "lpips", "train_seconds")
     table = "\n".join(f"{k:>18}: {row.get(k)}" for k in keys) + f"\n{'contact sheet':>18}: {row['sheet']}"
+    for d in row["driven"]:
+        table += f"\n{'driven':>18}: {d['audio']} ({d['lips']}): lips vs speech activity corr {d['corr']}, best shift {d['offset']} frames ({d['corr_at_offset']})"
     _emit([row], table, args.json)
     if args.plot:
         plot_mouth_opening(row, args.plot)
         print(f"plot: {args.plot}", file=sys.stderr)
+    return 0
+
+
+def _cmd_bench_voices(args: argparse.Namespace) -> int:
+    from .bench_voices import bench_voices, format_voices_table
+
+    try:
+        result = bench_voices(
+            args.work,
+            kinds=args.kinds,
+            seconds=args.seconds,
+            drive_seconds=args.drive_seconds,
+            size=args.size,
+            iterations=args.iters,
+            seed=args.seed,
+            device=_device(args.device),
+            log=_log,
+        )
+    except (ValueError, RuntimeError) as exc:
+        raise CliError(str(exc)) from exc
+    _emit([result], format_voices_table(result) + f"\nplot: {result['plot']}", args.json)
     return 0
 
 
@@ -226,14 +261,22 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from .outputs import check_folder_output
     from .synth import SynthConfig, synthesize
 
-    cfg = SynthConfig(seconds=args.seconds, size=args.size, seed=args.seed, voice=args.voice, features=args.features, fps=args.fps)
+    from .espeak import EspeakError, check_voice
+    from .synth import espeak_available
+
+    cfg = SynthConfig(seconds=args.seconds, size=args.size, seed=args.seed, voice=args.voice, speaker=args.speaker, words_per_minute=args.wpm, mouth=args.mouth, features=args.features, fps=args.fps)
     try:
         cfg.validate()
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     check_folder_output(args.output, "dataset", overwrite=args.overwrite)  # before the progress bar
-    with tqdm(total=cfg.n_frames, desc="synth frames", unit="frame") as bar:
-        out = synthesize(args.output, cfg, progress=lambda step, done, total: bar.update(done - bar.n), overwrite=args.overwrite)
+    try:
+        if cfg.voice == "espeak" or (cfg.voice == "auto" and espeak_available()):
+            check_voice(cfg.speaker)
+        with tqdm(total=cfg.n_frames, desc="synth frames", unit="frame") as bar:
+            out = synthesize(args.output, cfg, progress=lambda step, done, total: bar.update(done - bar.n), overwrite=args.overwrite)
+    except EspeakError as exc:  # an unknown --speaker, or no espeak-ng for --voice espeak
+        raise CliError(str(exc)) from exc
     print(f"{out}: synthetic talking head, {cfg.seconds:g} s at {cfg.fps:g} fps, {cfg.size}x{cfg.size}")
     return 0
 
@@ -460,10 +503,22 @@ def build_parser() -> argparse.ArgumentParser:
     real.add_argument("--lpips-backbone", default=None, help="AlexNet weights for LPIPS (default: the torch hub cache's alexnet-owt-7be5be79.pth, if there)")
     real.add_argument("--lpips-linear", default=None, help="LPIPS linear layers (default: those the lpips package ships, if installed)")
     real.add_argument("--seed", type=_number(int, 0), default=0, help="training seed")
-    real.add_argument("--iters", type=_positive_int_list, default=None, help="HEAD,TORSO iterations instead of the schedule fitted to --minutes (equal schedules for comparisons)")
+    real.add_argument("--iters", type=_head_torso_iters, default=None, help="HEAD,TORSO iterations instead of the schedule fitted to --minutes (equal schedules for comparisons)")
+    real.add_argument("--drive", action="append", default=[], metavar="AUDIO", help="another speech file to drive the trained run with (repeat for more); reports how its lips follow that speech")
     real.add_argument("--plot", default=None, help="write a PNG of the true and rendered mouth opening over the held-out frames")
     real.add_argument("--json", action="store_true", help="one JSON line on stdout, the table on stderr")
     real.set_defaults(func=_cmd_bench_real)
+    voices = bench_sub.add_parser("voices", help="train on one espeak-ng voice, drive with others: how the rendered mouth follows the viseme truth, per feature kind")
+    voices.add_argument("--kinds", nargs="+", choices=("logmel", "phonemes"), default=["logmel", "phonemes"], help="feature kinds to compare (one scene and run each)")
+    voices.add_argument("--seconds", type=_number(float, 5.0, 600.0), default=30.0, help="length of the training scene, 5 to 600 s")
+    voices.add_argument("--drive-seconds", type=_number(float, 1.0, 120.0), default=8.0, help="length of each driving clip, 1 to 120 s")
+    voices.add_argument("--size", type=_number(int, 32, 512), default=128, help="frame size in pixels, 32 to 512")
+    voices.add_argument("--iters", type=_head_torso_iters, default=None, help="HEAD,TORSO iterations (default: the demo's 3600,3000)")
+    voices.add_argument("--seed", type=_number(int, 0), default=0, help="seed of the scene, the training and the sentence order")
+    voices.add_argument("--device", default="cpu", help="cpu or cuda")
+    voices.add_argument("--work", default="adnerf_bench_voices", help="folder for the cached scenes, runs and the plot")
+    voices.add_argument("--json", action="store_true", help="one JSON line on stdout, the table on stderr")
+    voices.set_defaults(func=_cmd_bench_voices)
     fbench = bench_sub.add_parser("features", help="speech feature extraction speed (seconds of audio per second)")
     fbench.add_argument("--media", default=None, help="audio/video file to use (default: 60 s of synthetic voiced audio)")
     fbench.add_argument("--seconds", type=_number(float, 1.0, 3600.0), default=60.0, help="length of the synthetic audio, 1 to 3600 s")
@@ -492,6 +547,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--fps", type=_number(float, 1.0, 120.0), default=25.0, help="frame rate, 1 to 120")
     synth.add_argument("--seed", type=_number(int, 0), default=0, help="random seed of the pose track and the speech (>= 0)")
     synth.add_argument("--voice", choices=("auto", "formant", "espeak"), default="auto", help="speech source (auto: espeak-ng when installed)")
+    synth.add_argument("--speaker", default="en", help="espeak-ng voice of the speech, e.g. en, en+f3 (female), en-us+klatt (espeak-ng --voices lists them)")
+    synth.add_argument("--wpm", type=_number(int, 80, 450), default=150, help="speaking rate of the espeak-ng speech, 80 to 450 words per minute")
+    synth.add_argument("--mouth", choices=("auto", "visemes", "loudness"), default="auto", help="what opens the jaw: the phonemes spoken (visemes; needs espeak-ng) or the voice's loudness (auto: visemes with espeak-ng)")
     synth.add_argument("--features", choices=("logmel", "phonemes"), default="logmel", help="audio features stored with the dataset")
     synth.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder)")
     synth.set_defaults(func=_cmd_synth)

@@ -23,27 +23,34 @@ import numpy as np
 import torch
 from kornia.metrics import psnr, ssim
 
-from .data import LABEL_HEAD, MOUTH_CROP, DatasetError, TalkingHeadDataset
+from .data import LABEL_HEAD, MOUTH_CROP, DatasetError, SceneMeta, TalkingHeadDataset
 from .landmark_metrics import pearson
+from .pose import HeadPose
 from .render_video import RenderedClip, render_frames
 from .train import Run
 
 if TYPE_CHECKING:
     from .lpips import LPIPS
 
-__all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes"]
+__all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at"]
 
 PSNR_CAP_DB = 100.0  # the PSNR reported for identical pixels (a finite number JSON can carry)
 
 
 def mouth_boxes(ds: TalkingHeadDataset, frames: list[int], crop: float = MOUTH_CROP) -> np.ndarray:
-    """Square pixel boxes ``(n, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive) around the mouth.
+    """Square pixel boxes ``(n, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive) around the mouth of
+    the dataset's frames ``frames`` (:func:`mouth_boxes_at` of their poses)."""
+    return mouth_boxes_at(ds.meta, ds.head_pose(frames), crop)
+
+
+def mouth_boxes_at(meta: SceneMeta, pose: HeadPose, crop: float = MOUTH_CROP) -> np.ndarray:
+    """Square pixel boxes ``(n, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive) around the mouth
+    under head poses ``pose`` (batch ``(n,)``).
 
     The side is ``crop`` scene units at the mouth's depth, the same for every frame (its mean),
     and boxes are shifted to lie inside the image.
     """
-    meta = ds.meta
-    uv_t, depth = meta.mouth_in_image(ds.head_pose(frames))
+    uv_t, depth = meta.mouth_in_image(pose)
     uv = uv_t.numpy()
     side = int(round(crop * meta.intrinsics[0] / float(depth.mean())))
     side = max(8, min(side, meta.width, meta.height))
@@ -74,7 +81,7 @@ def image_metrics(pred: np.ndarray, target: np.ndarray) -> tuple[float, float]:
     return float(np.mean(per_frame)), s
 
 
-def _crops(frames: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+def crops(frames: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return np.stack([f[y0:y1, x0:x1] for f, (x0, y0, x1, y1) in zip(frames, boxes)])
 
 
@@ -127,7 +134,7 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip,
     gt = ds.frames[frames]
     full_psnr, full_ssim = image_metrics(clip.frames, gt)
     boxes = mouth_boxes(ds, frames)
-    pred_mouth, gt_mouth = _crops(clip.frames, boxes), _crops(gt, boxes)
+    pred_mouth, gt_mouth = crops(clip.frames, boxes), crops(gt, boxes)
     mouth_psnr, mouth_ssim = image_metrics(pred_mouth, gt_mouth)
     out = {
         "frames": len(frames),
