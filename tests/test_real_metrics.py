@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from adnerf.bench_real import bench_real, plot_mouth_opening, speech_follow
 from adnerf.cli import main
 from adnerf.evaluate import head_metrics
+from adnerf.io import read_video
 from adnerf.landmark_metrics import av_offset, landmark_metrics, mouth_opening
 from adnerf.lpips import CHANNELS, AlexFeatures, find_lpips, load_lpips
 from adnerf.synth import SynthConfig, synthesize
@@ -148,11 +149,13 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     assert main([*argv, "--drive", str(drive)]) == 0
     again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert again["lpips"] == "no weights" and again["seconds"]["preprocess"] < 1.0
-    # Driven by other speech (here the clip's whole audio): one row per file, after the clip's own
-    # held-out audio's rows (true frames and render) when landmarks were found.
+    # Driven by other speech (here the clip's whole audio): one row per file, after the reference
+    # rows of the clip's own audio (every frame; the held-out true frames and render when found).
     driven = again["driven"]
     assert driven[-1]["audio"] == str(drive) and driven[-1]["frames"] == 75 and "landmarks_found" in driven[-1]
-    assert len(driven) == 1 + 2 * ("mouth_opening_true_px" in row)
+    assert read_video(driven[-1]["video"]).frames.shape[0] == 75
+    assert driven[0]["audio"] == "the clip's own audio, every frame" and driven[0]["frames"] == 75
+    assert len(driven) == 2 + 2 * ("mouth_opening_true_px" in row)
     with pytest.raises(ValueError, match="no such audio file"):
         bench_real(clip, size=None, minutes=0.05, work=tmp_path / "never", drive=(tmp_path / "missing.wav",), progress=False, log=lambda m: None)
     assert not (tmp_path / "never").exists()

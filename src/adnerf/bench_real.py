@@ -15,11 +15,12 @@ Steps, each timed (the times go into the result):
    weights are on this machine).
 5. **sheet**: a contact sheet of true and rendered held-out frames with their mouths enlarged.
 6. **drive** (with ``drive``): other speech (another speaker, another language) drives the run
-   over the held-out poses. No true frames exist for it, so the rendered inner-lip opening (dlib
+   over the held-out poses (written as ``driven_<audio name>.mp4`` in the work folder). No true frames exist for it, so the rendered inner-lip opening (dlib
    landmarks) is compared with the driving audio's own speech activity (the voiced band's
    loudness, :func:`adnerf.features.voiced_loudness`): their correlation and the shift that
-   maximises it (> 0: the mouth is late). The clip's own held-out audio gets the same measure, for
-   the true frames and for the render, as the reference.
+   maximises it (> 0: the mouth is late). The clip's own audio gets the same measure as the
+   reference: over every frame with preprocessing's landmarks, and over the held-out frames for
+   the true frames and for the render.
 
 The result is one dict (``--json`` prints it as one line) and ``WORK/bench_real.png``.
 """
@@ -118,16 +119,23 @@ def _activity(samples: np.ndarray, rate: int, times: np.ndarray) -> np.ndarray:
     return voiced_loudness(samples, rate, times)
 
 
-def drive_with_speech(run, ds, audio_path: str | Path) -> dict:
+def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None = None) -> dict:
     """Render ``run`` driven by the speech in ``audio_path`` over the dataset's held-out poses
     (played forwards and backwards) and measure how the rendered lips follow that speech.
 
+    Args:
+        run: A loaded run.
+        ds: Its dataset (poses, plate).
+        audio_path: The driving speech.
+        video: Where to write the rendered clip with that speech (an mp4), or ``None``.
+
     Returns:
-        ``audio``, ``seconds``, ``frames``, ``landmarks_found`` and :func:`speech_follow`'s
-        figures (``None`` when landmarks are found in fewer than half of the frames).
+        ``audio``, ``seconds``, ``frames``, ``landmarks_found``, ``video`` and
+        :func:`speech_follow`'s figures (``None`` when landmarks are found in fewer than half of
+        the frames).
     """
     from .data import LABEL_HEAD
-    from .io import read_audio
+    from .io import AudioTrack, read_audio, write_video
     from .landmark_metrics import mouth_opening
     from .preprocess.landmarks import DlibFaceDetector, track_faces
     from .render_video import audio_frames, pingpong, render_frames
@@ -138,9 +146,11 @@ def drive_with_speech(run, ds, audio_path: str | Path) -> dict:
     n = len(windows)
     poses = pingpong(ds.poses[list(ds.meta.test)], n)
     clip = render_frames(run, windows, poses, ds.background.astype(np.float32) / 255.0)
+    if video is not None:
+        write_video(video, clip.frames, fps, AudioTrack(audio.samples, audio.sample_rate, 0.0))
     labels = np.where(clip.head_opacity > 0.5, LABEL_HEAD, 0).astype(np.uint8)
     track = track_faces(clip.frames, DlibFaceDetector(), labels)
-    row = {"audio": str(audio_path), "seconds": round(audio.duration, 2), "frames": n, "landmarks_found": int(track.detected.sum())}
+    row = {"audio": str(audio_path), "seconds": round(audio.duration, 2), "frames": n, "landmarks_found": int(track.detected.sum()), "video": None if video is None else str(video)}
     if track.detected.sum() < 0.5 * n:
         return {**row, "corr": None, "offset": None, "corr_at_offset": None}
     activity = _activity(audio.samples, audio.sample_rate, np.arange(n) / fps)
@@ -251,12 +261,19 @@ def bench_real(
         test = list(ds.meta.test)
         activity = _activity(ds.audio.samples, ds.audio.sample_rate, np.asarray(test) / ds.meta.fps - ds.audio.start)
         own = {"audio": "the clip's own held-out audio", "seconds": round(len(test) / ds.meta.fps, 2), "frames": len(test)}
+        landmarks = data / "landmarks.npy"  # preprocessing's, every frame: the longest reference
+        if landmarks.exists():
+            from .landmark_metrics import mouth_opening
+
+            every = np.arange(ds.meta.n_frames)
+            whole = _activity(ds.audio.samples, ds.audio.sample_rate, every / ds.meta.fps - ds.audio.start)
+            driven.append({"audio": "the clip's own audio, every frame", "seconds": round(len(every) / ds.meta.fps, 2), "frames": len(every), "lips": "true frames (preprocessing's landmarks)", **speech_follow(mouth_opening(np.load(landmarks)), whole)})
         if "mouth_opening_true_px" in metrics:
             driven.append({**own, "lips": "true frames", **speech_follow(np.asarray(metrics["mouth_opening_true_px"]), activity)})
             driven.append({**own, "lips": "render", **speech_follow(np.asarray(metrics["mouth_opening_render_px"]), activity)})
         for path in drive:
             log(f"driving the run with {path}")
-            driven.append({**drive_with_speech(run, ds, path), "lips": "render"})
+            driven.append({**drive_with_speech(run, ds, path, folder / f"driven_{Path(path).stem}.mp4"), "lips": "render"})
         seconds["drive"] = time.perf_counter() - t0
 
     elapsed = run.elapsed

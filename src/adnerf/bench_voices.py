@@ -83,11 +83,19 @@ def _scene(folder: Path, kind: str, seconds: float, size: int, seed: int, log: C
     config = SynthConfig(seconds=seconds, size=size, seed=seed, voice="espeak", speaker=TRAINING_VOICE.speaker, words_per_minute=TRAINING_VOICE.words_per_minute, mouth="visemes", features=kind, test_fraction=0.1)
     if (folder / "meta.json").exists():
         meta = read_meta(folder)
-        if meta.n_frames == config.n_frames and meta.width == size and meta.feature_kind == kind and "mouth=visemes" in meta.source:
+        same = meta.n_frames == config.n_frames and meta.width == size and meta.feature_kind == kind
+        if same and f"seed={seed} " in meta.source and f"speaker={TRAINING_VOICE.speaker} wpm={TRAINING_VOICE.words_per_minute} mouth=visemes" in meta.source:
             return folder
     log(f"synthesising the training scene ({kind} features) into {folder}")
     synthesize(folder, config, overwrite=folder.exists())
     return folder
+
+
+def _exact_frame(head, torso, pose: np.ndarray, opening: float, plate: np.ndarray) -> np.ndarray:
+    """The synthetic scene rendered exactly (ray casting) at a pose and jaw opening, uint8."""
+    from .synth import render_frame
+
+    return np.round(np.clip(render_frame(head, torso, pose, opening, plate)[0], 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 class JawReader:
@@ -111,7 +119,7 @@ class JawReader:
 
         from .evaluate import crops, mouth_boxes_at
         from .pose import HeadPose
-        from .synth import HeadModel, TorsoModel, render_frame
+        from .synth import HeadModel, TorsoModel
 
         self.openings = np.linspace(0.0, 1.0, steps)
         self.boxes = mouth_boxes_at(ds.meta, HeadPose.from_matrix(torch.as_tensor(poses, dtype=torch.float64)))
@@ -119,7 +127,7 @@ class JawReader:
         plate = ds.background.astype(np.float64) / 255.0
         templates = []
         for pose, box in zip(poses, self.boxes):
-            frames = np.stack([np.round(np.clip(render_frame(head, torso, pose, o, plate)[0], 0, 1) * 255) for o in self.openings])
+            frames = np.stack([_exact_frame(head, torso, pose, o, plate) for o in self.openings])
             templates.append(crops(frames, np.repeat(box[None], steps, axis=0)).astype(np.float32))
         self.templates = np.stack(templates)  # (P, steps, s, s, 3)
 
@@ -179,7 +187,7 @@ def bench_voices(
     from .espeak import espeak_ready
     from .io import AudioTrack
     from .render_video import audio_frames, pingpong, render_frames
-    from .synth import SAMPLE_RATE, HeadModel, TorsoModel, espeak_speech, render_frame
+    from .synth import SAMPLE_RATE, HeadModel, TorsoModel, espeak_speech
     from .train import load_run, train
     from .visemes import jaw_track
 
@@ -224,7 +232,7 @@ def bench_voices(
         jaw = jaw_track(speech.phonemes or (), times, end=drive_seconds)
         pose_index = pingpong(np.arange(len(test_poses)), n)
         poses = test_poses[pose_index]
-        truth_frames = np.stack([np.round(np.clip(render_frame(head, torso, p, o, scene_plate)[0], 0, 1) * 255).astype(np.uint8) for p, o in zip(poses, jaw)])
+        truth_frames = np.stack([_exact_frame(head, torso, p, o, scene_plate) for p, o in zip(poses, jaw)])
         read_truth = reader.read(truth_frames, pose_index)
         row: dict = {"voice": voice.label, "speaker": voice.speaker, "words_per_minute": voice.words_per_minute, "frames": n, "reader_on_truth": mouth_follow(read_truth, jaw)}
         track = {"voice": voice.label, "jaw": jaw}
