@@ -190,7 +190,7 @@ def test_recogniser_decodes_recognisable_phonemes(tmp_path: Path) -> None:
     result = model.transcribe_waveform(a.samples, a.sample_rate)
     assert "i" in result.phonemes and "s" in result.phonemes
     # Our per-frame log-probabilities decode to the same argmax sequence as hama's own call.
-    samples16 = F._resample(a, F.MODEL_RATE)
+    samples16 = F.resample(a, F.MODEL_RATE)
     ours = F.phoneme_logprobs(samples16).argmax(-1)
     theirs = np.asarray(model.transcribe_waveform(samples16, F.MODEL_RATE).frame_token_ids)
     agree = (ours[: len(theirs)] == theirs).mean()
@@ -200,7 +200,7 @@ def test_recogniser_decodes_recognisable_phonemes(tmp_path: Path) -> None:
 @pytest.mark.skipif(ESPEAK is None, reason="espeak-ng is not installed (apt-get install espeak-ng); .ci/run installs it")
 def test_chunked_phonemes_match_unchunked_on_speech(tmp_path: Path) -> None:
     a = _speak(tmp_path, "the quick brown fox jumps over the lazy dog and runs far away into the forest")
-    x = F._resample(a, F.MODEL_RATE)
+    x = F.resample(a, F.MODEL_RATE)
     whole = F.phoneme_logprobs(x, chunk_seconds=100)
     chunked = F.phoneme_logprobs(x, chunk_seconds=1.5, context_seconds=2.0)
     assert chunked.shape == whole.shape
@@ -328,7 +328,7 @@ def test_local_transformers_model_round_trip(tmp_path: Path, family: str) -> Non
     windows = F.speech_windows(audio, times, spec)
     assert windows.shape == (30, 16, 16) and np.isfinite(windows).all()
     # The loaded model computes what the saved one does (same weights through the loader).
-    x = F._resample(audio, F.MODEL_RATE)
+    x = F.resample(audio, F.MODEL_RATE)
     ours = F.hidden_states(x, str(tmp_path / "model"))
     assert ours.shape == (len(x) // 320 + 1, 16)
     xn = torch.from_numpy(x)

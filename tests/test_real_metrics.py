@@ -12,7 +12,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from adnerf.bench_real import bench_real, plot_mouth_opening, speech_follow
+from adnerf.bench_real import bench_real, plot_mouth_opening
+from adnerf.bench_voices import mouth_follow
 from adnerf.cli import main
 from adnerf.evaluate import head_metrics
 from adnerf.io import read_video
@@ -113,14 +114,14 @@ def test_lpips_loads_local_weights_and_measures(tmp_path: Path) -> None:
         load_lpips(linear_path, linear_path)
 
 
-def test_speech_follow_finds_a_late_mouth() -> None:
+def test_mouth_follow_finds_a_late_mouth() -> None:
     rng = np.random.default_rng(0)
     activity = np.convolve(rng.random(120), np.ones(5) / 5, mode="same")
     late = np.concatenate([np.full(2, activity[0]), activity[:-2]])  # the lips move 2 frames after the sound
-    row = speech_follow(5.0 + 10.0 * late, activity)
+    row = mouth_follow(5.0 + 10.0 * late, activity)
     assert row["offset"] == 2 and row["corr_at_offset"] == pytest.approx(1.0, abs=1e-6) and row["corr"] < 0.9
-    assert speech_follow(activity, activity) == {"corr": 1.0, "offset": 0, "corr_at_offset": 1.0}
-    assert speech_follow(np.zeros(20), activity[:20])["corr"] is None  # a still mouth has no correlation
+    assert mouth_follow(activity, activity) == {"corr": 1.0, "offset": 0, "corr_at_offset": 1.0}
+    assert mouth_follow(np.zeros(20), activity[:20])["corr"] is None  # a still mouth has no correlation
 
 
 @pytest.fixture(scope="module")

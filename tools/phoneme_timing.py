@@ -14,10 +14,9 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-from scipy.signal import resample_poly
-
 from adnerf.espeak import PAUSE, speak
-from adnerf.features import FEATURE_RATE, MODEL_RATE, _hama_model, phoneme_logprobs
+from adnerf.features import FEATURE_RATE, MODEL_RATE, _hama_model, phoneme_logprobs, resample
+from adnerf.io import AudioTrack
 
 WORDS = "father map ball open ocean apple eagle umbrella mother table water sun garden yellow window pocket".split()
 
@@ -27,7 +26,7 @@ def measure(voice: str) -> tuple[np.ndarray, np.ndarray]:
     pieces, spans, t = [np.zeros(MODEL_RATE // 2, np.float32)], [], 0.5
     for word in WORDS:
         said = speak(word, voice)
-        x = resample_poly(said.samples.astype(np.float64), MODEL_RATE // 50, said.sample_rate // 50).astype(np.float32)
+        x = resample(AudioTrack(said.samples, said.sample_rate, 0.0), MODEL_RATE)
         first = next(p.start for p in said.phonemes if p.ipa != PAUSE)
         spans.append((t + first, t + len(x) / MODEL_RATE))
         pieces += [x, np.zeros(int(0.8 * MODEL_RATE), np.float32)]

@@ -38,7 +38,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-__all__ = ["bench_real", "drive_with_speech", "plot_mouth_opening", "resized_video", "speech_follow"]
+__all__ = ["bench_real", "drive_with_speech", "plot_mouth_opening", "resized_video"]
 
 HEAD_SHARE = 0.55  # of the training budget; the rest is the torso's (the demo's 3600 : 3000)
 
@@ -105,20 +105,6 @@ def _sheet(path: Path, ds, frames: list[int], rendered: np.ndarray, count: int =
     return contact_sheet(path, rows, ["true (held out)", "render", "true mouth", "rendered mouth"], [f"frame {frames[k]}" for k in picks])
 
 
-def speech_follow(opening_px: np.ndarray, activity: np.ndarray) -> dict:
-    """How a lip-opening series follows the speech activity of the audio over the same frames
-    (:func:`adnerf.bench_voices.mouth_follow`: ``corr``, ``offset``, ``corr_at_offset``)."""
-    from .bench_voices import mouth_follow
-
-    return mouth_follow(opening_px, activity)
-
-
-def _activity(samples: np.ndarray, rate: int, times: np.ndarray) -> np.ndarray:
-    from .features import voiced_loudness
-
-    return voiced_loudness(samples, rate, times)
-
-
 def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None = None) -> dict:
     """Render ``run`` driven by the speech in ``audio_path`` over the dataset's held-out poses
     (played forwards and backwards) and measure how the rendered lips follow that speech.
@@ -131,10 +117,13 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
 
     Returns:
         ``audio``, ``seconds``, ``frames``, ``landmarks_found``, ``video`` and
-        :func:`speech_follow`'s figures (``None`` when landmarks are found in fewer than half of
+        :func:`~adnerf.bench_voices.mouth_follow`'s figures of the lip opening against the speech
+        activity (``None`` when landmarks are found in fewer than half of
         the frames).
     """
     from .data import LABEL_HEAD
+    from .bench_voices import mouth_follow
+    from .features import voiced_loudness
     from .io import AudioTrack, read_audio, write_video
     from .landmark_metrics import mouth_opening
     from .preprocess.landmarks import DlibFaceDetector, track_faces
@@ -153,8 +142,8 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
     row = {"audio": str(audio_path), "seconds": round(audio.duration, 2), "frames": n, "landmarks_found": int(track.detected.sum()), "video": None if video is None else str(video)}
     if track.detected.sum() < 0.5 * n:
         return {**row, "corr": None, "offset": None, "corr_at_offset": None}
-    activity = _activity(audio.samples, audio.sample_rate, np.arange(n) / fps)
-    return {**row, **speech_follow(mouth_opening(track.landmarks), activity)}
+    activity = voiced_loudness(audio.samples, audio.sample_rate, np.arange(n) / fps)
+    return {**row, **mouth_follow(mouth_opening(track.landmarks), activity)}
 
 
 def bench_real(
@@ -257,20 +246,21 @@ def bench_real(
 
     driven: list[dict] = []
     if drive:
+        from .bench_voices import mouth_follow
+        from .features import voiced_loudness
+        from .landmark_metrics import mouth_opening
+
         t0 = time.perf_counter()
-        test = list(ds.meta.test)
-        activity = _activity(ds.audio.samples, ds.audio.sample_rate, np.asarray(test) / ds.meta.fps - ds.audio.start)
-        own = {"audio": "the clip's own held-out audio", "seconds": round(len(test) / ds.meta.fps, 2), "frames": len(test)}
+        every, test = np.arange(ds.meta.n_frames), list(ds.meta.test)
+        activity = voiced_loudness(ds.audio.samples, ds.audio.sample_rate, every / ds.meta.fps - ds.audio.start)
         landmarks = data / "landmarks.npy"  # preprocessing's, every frame: the longest reference
         if landmarks.exists():
-            from .landmark_metrics import mouth_opening
-
-            every = np.arange(ds.meta.n_frames)
-            whole = _activity(ds.audio.samples, ds.audio.sample_rate, every / ds.meta.fps - ds.audio.start)
-            driven.append({"audio": "the clip's own audio, every frame", "seconds": round(len(every) / ds.meta.fps, 2), "frames": len(every), "lips": "true frames (preprocessing's landmarks)", **speech_follow(mouth_opening(np.load(landmarks)), whole)})
+            whole = {"audio": "the clip's own audio, every frame", "seconds": round(len(every) / ds.meta.fps, 2), "frames": len(every)}
+            driven.append({**whole, "lips": "true frames (preprocessing's landmarks)", **mouth_follow(mouth_opening(np.load(landmarks)), activity)})
         if "mouth_opening_true_px" in metrics:
-            driven.append({**own, "lips": "true frames", **speech_follow(np.asarray(metrics["mouth_opening_true_px"]), activity)})
-            driven.append({**own, "lips": "render", **speech_follow(np.asarray(metrics["mouth_opening_render_px"]), activity)})
+            own = {"audio": "the clip's own held-out audio", "seconds": round(len(test) / ds.meta.fps, 2), "frames": len(test)}
+            driven.append({**own, "lips": "true frames", **mouth_follow(np.asarray(metrics["mouth_opening_true_px"]), activity[test])})
+            driven.append({**own, "lips": "render", **mouth_follow(np.asarray(metrics["mouth_opening_render_px"]), activity[test])})
         for path in drive:
             log(f"driving the run with {path}")
             driven.append({**drive_with_speech(run, ds, path, folder / f"driven_{Path(path).stem}.mp4"), "lips": "render"})

@@ -48,6 +48,7 @@ __all__ = [
     "save_npy_atomic",
     "logmel",
     "phoneme_logprobs",
+    "resample",
     "speech_windows",
     "voiced_loudness",
 ]
@@ -82,7 +83,8 @@ class FeatureSpec:
     model_dir: str | None = None
 
 
-def _resample(audio: AudioTrack, rate: int) -> np.ndarray:
+def resample(audio: AudioTrack, rate: int) -> np.ndarray:
+    """The samples of ``audio`` at ``rate`` Hz, float32 (band-limited polyphase resampling)."""
     if audio.sample_rate == rate:
         return audio.samples.astype(np.float32, copy=False)
     # Band-limited polyphase resampling (scipy is a dependency of scikit-image).
@@ -239,7 +241,7 @@ def hidden_states(samples: np.ndarray, model_dir: str, *, chunk_seconds: float =
 
 def extract_features(audio: AudioTrack, spec: FeatureSpec = FeatureSpec(), progress: Callable[[int], None] | None = None) -> np.ndarray:
     """Features at 50 Hz of an audio track, ``(T, D)``; feature ``k`` at ``audio.start + k / 50`` s."""
-    samples = _resample(audio, MODEL_RATE)
+    samples = resample(audio, MODEL_RATE)
     if spec.kind == "logmel":
         out = logmel(samples, spec.n_mels)
         if progress is not None:

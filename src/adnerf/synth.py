@@ -37,7 +37,7 @@ import trimesh
 
 from .data import LABEL_HEAD, LABEL_TORSO, SceneMeta, Truth, save_dataset, tail_split
 from .espeak import PAUSE, Phoneme, espeak_ready, speak
-from .features import FeatureSpec, speech_windows, voiced_loudness
+from .features import FeatureSpec, resample, speech_windows, voiced_loudness
 from .io import AudioTrack, write_video
 from .outputs import check_folder_output
 from .visemes import jaw_track
@@ -221,8 +221,6 @@ def espeak_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0, *, spe
         words_per_minute: Speaking rate.
         sentences: What is said, repeated as needed.
     """
-    from scipy.signal import resample_poly
-
     if not espeak_available():
         raise RuntimeError("espeak-ng is not installed (apt install espeak-ng), or use voice='formant'")
     rng = np.random.default_rng(seed)
@@ -233,8 +231,7 @@ def espeak_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0, *, spe
     total, k = 0, 0
     while total < want:
         said = speak(sentences[order[k % len(order)]], speaker, words_per_minute)
-        g = math.gcd(rate, said.sample_rate)
-        samples = resample_poly(said.samples.astype(np.float64), rate // g, said.sample_rate // g).astype(np.float32)
+        samples = resample(AudioTrack(said.samples, said.sample_rate, 0.0), rate)
         phonemes += [Phoneme(total / rate + p.start, p.ipa) for p in said.phonemes]
         pause = np.zeros(int(rng.uniform(0.25, 0.6) * rate), dtype=np.float32)
         phonemes.append(Phoneme((total + len(samples)) / rate, PAUSE))
