@@ -176,3 +176,13 @@ def test_bench_voices_runs_end_to_end(tmp_path, capsys) -> None:
             assert set(row[kind]) == {"corr", "offset", "corr_at_offset", "mean_abs_error"}
     assert (tmp_path / "w" / "bench_voices.png").stat().st_size > 0
     assert main([*argv[:-1], "--iters", "8"]) == 2  # HEAD,TORSO: two numbers
+
+
+@needs_espeak
+def test_synth_refuses_an_unknown_speaker_before_writing(tmp_path, capsys) -> None:
+    from adnerf.cli import main
+
+    assert main(["synth", "-o", str(tmp_path / "s"), "--seconds", "1", "--size", "16", "--speaker", "no-such-voice"]) == 2
+    assert "no voice 'no-such-voice'" in capsys.readouterr().err and not (tmp_path / "s").exists()
+    assert main(["synth", "-o", str(tmp_path / "s"), "--voice", "formant", "--mouth", "visemes"]) == 2
+    assert not (tmp_path / "s").exists()
