@@ -155,7 +155,9 @@ def test_jaw_reader_reads_the_opening_off_exact_renders(tmp_path) -> None:
     truth = np.array([0.0, 0.33, 0.52, 0.9, 1.0, 0.71])
     which = np.array([0, 1, 2, 0, 1, 2])
     frames = np.stack([np.round(np.clip(render_frame(head, torso, poses[p], o, plate)[0], 0, 1) * 255).astype(np.uint8) for p, o in zip(which, truth)])
-    np.testing.assert_allclose(reader.read(frames, which), truth, atol=0.04)
+    # Within 0.02 (measured: 0.014 at most) of the truth between grid openings 0.05 apart: the
+    # parabola refines the nearest template (a refinement of the wrong sign is 0.038 off).
+    np.testing.assert_allclose(reader.read(frames, which), truth, atol=0.02)
     # Read with the wrong pose's templates, the answer is another one: the pose matters.
     assert np.abs(reader.read(frames, (which + 1) % 3) - truth).max() > 0.04
 

@@ -236,9 +236,9 @@ def bench_voices(
         read_truth = reader.read(truth_frames, pose_index)
         row: dict = {"voice": voice.label, "speaker": voice.speaker, "words_per_minute": voice.words_per_minute, "frames": n, "reader_on_truth": mouth_follow(read_truth, jaw)}
         track = {"voice": voice.label, "jaw": jaw}
+        audio = AudioTrack(speech.samples, SAMPLE_RATE, 0.0)
         for kind in kinds:
             log(f"driving the {kind} run with {voice.label}")
-            audio = AudioTrack(speech.samples, SAMPLE_RATE, 0.0)
             windows = audio_frames(audio, fps, kind, voice.label)[:n]
             clip = render_frames(runs[kind], windows, poses, plate)
             read = reader.read(clip.frames, pose_index)

@@ -133,7 +133,7 @@ def _cmd_bench_fields(args: argparse.Namespace) -> int:
     _emit(rows, format_fields_table(rows), args.json)
     if args.plot:
         plot_fields(rows, args.plot)
-        print(f"plot: {args.plot}", file=sys.stderr)
+        _log(f"plot: {args.plot}")
     return 0
 
 
@@ -167,7 +167,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
     _emit([row], table, args.json)
     if args.plot:
         plot_mouth_opening(row, args.plot)
-        print(f"plot: {args.plot}", file=sys.stderr)
+        _log(f"plot: {args.plot}")
     return 0
 
 
