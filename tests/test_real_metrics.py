@@ -19,6 +19,7 @@ from adnerf.evaluate import head_metrics
 from adnerf.io import read_video
 from adnerf.landmark_metrics import av_offset, landmark_metrics, mouth_opening
 from adnerf.lpips import CHANNELS, AlexFeatures, find_lpips, load_lpips
+from adnerf.syncnet import SyncNet
 from adnerf.synth import SynthConfig, synthesize
 
 
@@ -131,12 +132,18 @@ def clip(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     backbone_path, linear_path = _save_lpips_weights(tmp_path)
-    row = bench_real(clip, size=None, minutes=0.05, work=tmp_path / "work", lpips_backbone=backbone_path, lpips_linear=linear_path, progress=False, log=lambda m: None)
+    torch.manual_seed(0)
+    syncnet_path = tmp_path / "syncnet.model"
+    torch.save(SyncNet(64).state_dict(), syncnet_path)  # random weights: the plumbing, not the score
+    row = bench_real(clip, size=None, minutes=0.05, work=tmp_path / "work", lpips_backbone=backbone_path, lpips_linear=linear_path, syncnet=syncnet_path, progress=False, log=lambda m: None)
     json.dumps(row)  # serialisable as it is
     for key in ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "lpips"):
         assert isinstance(row[key], (int, float)) and math.isfinite(row[key]), key
     assert row["held_out_frames"] == row["frames"] == 11 and row["clip_frames"] == 75 and row["train_frames"] == 64
-    assert row["landmarks_found_true"] == 11 and row["syncnet"] == "not implemented" and row["features"] == "logmel"
+    assert row["landmarks_found_true"] == 11 and row["features"] == "logmel"
+    # SyncNet scores the 11 held-out frames' 6 windows, the renders and the true frames alike.
+    assert row["syncnet"] == "scored" and row["syncnet_windows"] == 6 and len(row["syncnet_curve"]) == 31
+    assert row["lse_d"] > 0 and row["lse_d_true"] > 0 and row["lse_d"] != row["lse_d_true"]
     # Three seconds of training render no face dlib finds: then there is no LMD, and it says why.
     assert ("lmd_mouth_px" in row) == (row["landmarks_found_render"] >= 0.5 * 11)
     assert row["layers"]["lip_in_head"] >= 0.98 and Path(row["sheet"]).stat().st_size > 0
@@ -147,25 +154,33 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     capsys.readouterr()
     drive = clip.parent / "audio.wav"
     argv = ["bench", "real", str(clip), "--size", "0", "--minutes", "0.05", "--work", str(tmp_path / "work"), "--json", "--lpips-backbone", str(tmp_path / "none.pth")]
-    assert main([*argv, "--drive", str(drive)]) == 0
+    assert main([*argv, "--drive", str(drive), "--syncnet", str(syncnet_path)]) == 0
     again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert again["lpips"] == "no weights" and again["seconds"]["preprocess"] < 1.0
+    assert again["lpips"] == "no weights" and again["syncnet"] == "scored" and again["seconds"]["preprocess"] < 1.0
     # Driven by other speech (here the clip's whole audio): one row per file, after the reference
     # rows of the clip's own audio (every frame; the held-out true frames and render when found).
     driven = again["driven"]
     assert driven[-1]["audio"] == str(drive) and driven[-1]["frames"] == 75 and "landmarks_found" in driven[-1]
     assert read_video(driven[-1]["video"]).frames.shape[0] == 75
+    if driven[-1]["landmarks_found"] >= 0.5 * 75:  # the driven clip is scored against its speech
+        assert driven[-1]["syncnet_windows"] == 70
     assert driven[0]["audio"] == "the clip's own audio, every frame" and driven[0]["frames"] == 75
     assert len(driven) == 2 + 2 * ("mouth_opening_true_px" in row)
     with pytest.raises(ValueError, match="no such audio file"):
         bench_real(clip, size=None, minutes=0.05, work=tmp_path / "never", drive=(tmp_path / "missing.wav",), progress=False, log=lambda m: None)
+    with pytest.raises(ValueError, match="not a SyncNet checkpoint"):
+        bench_real(clip, size=None, minutes=0.05, work=tmp_path / "never", syncnet=linear_path, progress=False, log=lambda m: None)
     assert not (tmp_path / "never").exists()
     assert again["psnr"] == pytest.approx(row["psnr"], abs=1e-6)  # the same run, rendered again
     # adnerf evaluate reports the same metrics for the run and its dataset.
-    assert main(["evaluate", row["run"], row["dataset"], "--json", "--lpips-backbone", str(backbone_path), "--lpips-linear", str(linear_path)]) == 0
+    assert main(["evaluate", row["run"], row["dataset"], "--json", "--lpips-backbone", str(backbone_path), "--lpips-linear", str(linear_path), "--syncnet", str(syncnet_path)]) == 0
     ev = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    for key in ("psnr", "psnr_head", "ssim_head", "psnr_mouth", "lpips", "landmarks_found_true"):
+    for key in ("psnr", "psnr_head", "ssim_head", "psnr_mouth", "lpips", "landmarks_found_true", "lse_d", "lse_c", "lse_d_true"):
         assert ev[key] == pytest.approx(row[key], abs=1e-6), key
+    # Without weights the columns say so, and nothing is fetched.
+    assert main(["evaluate", row["run"], row["dataset"], "--json", "--no-landmarks"]) == 0
+    bare = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert bare["syncnet"] == "no weights" and bare["lpips"] == "no weights" and "lse_d" not in bare
 
 
 def test_landmark_evaluation_of_true_and_delayed_frames(clip: Path, tmp_path: Path) -> None:
@@ -185,3 +200,12 @@ def test_landmark_evaluation_of_true_and_delayed_frames(clip: Path, tmp_path: Pa
     early = landmark_evaluation(ds, frames, ds.frames[[f + 2 for f in frames]])
     assert late["av_offset_frames"] in (1, 2, 3) and early["av_offset_frames"] in (-1, -2, -3)
     assert late["lmd_mouth_px"] > 0 and late["mouth_open_corr"] < same["mouth_open_corr"]
+    # SyncNet on the true frames as renders: the same crops, the same scores as the truth's.
+    from adnerf.evaluate import syncnet_evaluation
+
+    torch.manual_seed(1)
+    net = SyncNet(64).eval()
+    scored = syncnet_evaluation(ds, frames, ds.frames[frames], net)
+    assert scored["syncnet_windows"] == 45 and scored["lse_d"] == scored["lse_d_true"] and scored["lse_c"] == scored["lse_c_true"]
+    assert syncnet_evaluation(ds, frames, ds.frames[[f - 2 for f in frames]], net)["lse_d"] != scored["lse_d"]
+    assert syncnet_evaluation(ds, frames[::2], ds.frames[frames[::2]], net) == {"syncnet": "needs consecutive frames"}

@@ -105,7 +105,7 @@ def _sheet(path: Path, ds, frames: list[int], rendered: np.ndarray, count: int =
     return contact_sheet(path, rows, ["true (held out)", "render", "true mouth", "rendered mouth"], [f"frame {frames[k]}" for k in picks])
 
 
-def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None = None) -> dict:
+def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None = None, syncnet=None) -> dict:
     """Render ``run`` driven by the speech in ``audio_path`` over the dataset's held-out poses
     (played forwards and backwards) and measure how the rendered lips follow that speech.
 
@@ -114,12 +114,15 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
         ds: Its dataset (poses, plate).
         audio_path: The driving speech.
         video: Where to write the rendered clip with that speech (an mp4), or ``None``.
+        syncnet: A :class:`~adnerf.syncnet.SyncNet` to score the driven clip against the driving
+            speech (LSE-D / LSE-C need no truth, so they judge speech the person never said), or
+            ``None``.
 
     Returns:
         ``audio``, ``seconds``, ``frames``, ``landmarks_found``, ``video`` and
         :func:`~adnerf.bench_voices.mouth_follow`'s figures of the lip opening against the speech
         activity (``None`` when landmarks are found in fewer than half of
-        the frames).
+        the frames); with ``syncnet`` (and 25 frames per second) also its scores.
     """
     from .data import LABEL_HEAD
     from .bench_voices import mouth_follow
@@ -128,6 +131,7 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
     from .landmark_metrics import mouth_opening
     from .preprocess.landmarks import DlibFaceDetector, track_faces
     from .render_video import audio_frames, pingpong, render_frames
+    from .syncnet import SYNCNET_FPS, face_crops, sync_scores
 
     audio = read_audio(audio_path, sample_rate=16000)
     fps = ds.meta.fps
@@ -142,6 +146,8 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
     row = {"audio": str(audio_path), "seconds": round(audio.duration, 2), "frames": n, "landmarks_found": int(track.detected.sum()), "video": None if video is None else str(video)}
     if track.detected.sum() < 0.5 * n:
         return {**row, "corr": None, "offset": None, "corr_at_offset": None}
+    if syncnet is not None and abs(fps - SYNCNET_FPS) < 1e-6:
+        row.update(sync_scores(syncnet, face_crops(clip.frames, track.boxes), audio.samples).as_dict())
     activity = voiced_loudness(audio.samples, audio.sample_rate, np.arange(n) / fps)
     return {**row, **mouth_follow(mouth_opening(track.landmarks), activity)}
 
@@ -159,6 +165,7 @@ def bench_real(
     work: str | Path = "adnerf_bench_real",
     lpips_backbone: str | Path | None = None,
     lpips_linear: str | Path | None = None,
+    syncnet: str | Path | None = None,
     seed: int = 0,
     iterations: tuple[int, int] | None = None,
     drive: tuple[str | Path, ...] = (),
@@ -179,6 +186,7 @@ def bench_real(
         work: Folder for the cached video, dataset and run (``<stem>_<size>_<cut>/`` inside).
         lpips_backbone: AlexNet weights for LPIPS (default: the torch hub cache's, if there).
         lpips_linear: LPIPS linear layers (default: the installed ``lpips`` package's, if any).
+        syncnet: SyncNet checkpoint for LSE-D / LSE-C (:mod:`adnerf.syncnet`; none: "no weights").
         seed: Training seed.
         iterations: ``(head, torso)`` iterations instead of the schedule fitted to ``minutes``
             (the probe's speed depends on the machine's load; comparisons want equal schedules).
@@ -193,8 +201,10 @@ def bench_real(
     from .evaluate import evaluate_run
     from .lpips import lpips_if_available
     from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
+    from .syncnet import load_syncnet
     from .train import TrainConfig, load_run, train
 
+    sync = load_syncnet(syncnet, device) if syncnet is not None else None  # a bad file fails before hours of work
     if not minutes > 0 or not math.isfinite(minutes):
         raise ValueError(f"the training budget must be a positive number of minutes; got {minutes}")
     for path in drive:  # before hours of work
@@ -238,7 +248,7 @@ def bench_real(
     t0 = time.perf_counter()
     run, ds = load_run(run_dir, device), load_dataset(data, truth=False)
     model = lpips_if_available(lpips_backbone, lpips_linear, device)
-    metrics, rendered = evaluate_run(run, ds, "test", landmarks=True, lpips=model)
+    metrics, rendered = evaluate_run(run, ds, "test", landmarks=True, lpips=model, syncnet=sync)
     seconds["evaluate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     sheet = _sheet(folder / "bench_real.png", ds, list(ds.meta.test), rendered.frames)
@@ -263,7 +273,7 @@ def bench_real(
             driven.append({**own, "lips": "render", **mouth_follow(np.asarray(metrics["mouth_opening_render_px"]), activity[test])})
         for path in drive:
             log(f"driving the run with {path}")
-            driven.append({**drive_with_speech(run, ds, path, folder / f"driven_{Path(path).stem}.mp4"), "lips": "render"})
+            driven.append({**drive_with_speech(run, ds, path, folder / f"driven_{Path(path).stem}.mp4", sync), "lips": "render"})
         seconds["drive"] = time.perf_counter() - t0
 
     elapsed = run.elapsed
@@ -284,7 +294,7 @@ def bench_real(
         "layers": report.get("layers"),
         **metrics,
         "lpips": metrics.get("lpips", "no weights"),
-        "syncnet": "not implemented",
+        "syncnet": metrics.get("syncnet", "scored" if "lse_d" in metrics else "no weights"),
         "driven": driven,
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
         "sheet": str(sheet),

@@ -153,6 +153,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
             work=args.work,
             lpips_backbone=args.lpips_backbone,
             lpips_linear=args.lpips_linear,
+            syncnet=args.syncnet,
             seed=args.seed,
             iterations=args.iters,
             drive=tuple(args.drive),
@@ -160,10 +161,12 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "mouth_open_corr", "av_offset_frames", "lpips", "train_seconds")
-    table = "\n".join(f"{k:>18}: {row.get(k)}" for k in keys) + f"\n{'contact sheet':>18}: {row['sheet']}"
+    keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "mouth_open_corr", "av_offset_frames", "lpips", "lse_d", "lse_c", "lse_d_true", "lse_c_true", "train_seconds")
+    table = "\n".join(f"{k:>18}: {row.get(k, row['syncnet'] if k.startswith('lse') else None)}" for k in keys) + f"\n{'contact sheet':>18}: {row['sheet']}"
     for d in row["driven"]:
         table += f"\n{'driven':>18}: {d['audio']} ({d['lips']}): lips vs speech activity corr {d['corr']}, best shift {d['offset']} frames ({d['corr_at_offset']})"
+        if "lse_d" in d:
+            table += f"; SyncNet LSE-D {d['lse_d']:.3f}, LSE-C {d['lse_c']:.3f}, offset {d['syncnet_offset_frames']}"
     _emit([row], table, args.json)
     if args.plot:
         plot_mouth_opening(row, args.plot)
@@ -419,16 +422,20 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .train import load_run
 
     from .lpips import lpips_if_available
+    from .syncnet import load_syncnet
 
     device = _device(args.device)
-    run = load_run(args.run, device)
-    ds = load_dataset(args.dataset)
     try:
         model = lpips_if_available(args.lpips_backbone, args.lpips_linear, device)
+        sync = load_syncnet(args.syncnet, device) if args.syncnet else None
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    metrics, _ = evaluate_run(run, ds, args.split, landmarks=not args.no_landmarks, lpips=model)
+    run = load_run(args.run, device)
+    ds = load_dataset(args.dataset)
+    metrics, _ = evaluate_run(run, ds, args.split, landmarks=not args.no_landmarks, lpips=model, syncnet=sync)
     metrics["lpips"] = metrics.get("lpips", "no weights")
+    metrics.setdefault("syncnet", "scored" if "lse_d" in metrics else "no weights")
+    metrics.pop("syncnet_curve", None)
     metrics = {k: v for k, v in metrics.items() if not k.startswith("mouth_opening_")}  # the per-frame series: bench real --plot draws them
     if args.json:
         print(json.dumps(metrics))
@@ -502,6 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
     real.add_argument("--work", default="adnerf_bench_real", help="folder for the cached video, dataset and run")
     real.add_argument("--lpips-backbone", default=None, help="AlexNet weights for LPIPS (default: the torch hub cache's alexnet-owt-7be5be79.pth, if there)")
     real.add_argument("--lpips-linear", default=None, help="LPIPS linear layers (default: those the lpips package ships, if installed)")
+    real.add_argument("--syncnet", default=None, metavar="CHECKPOINT", help="SyncNet checkpoint (syncnet_v2.model of the public release) for LSE-D / LSE-C; without it they read \"no weights\" (nothing is downloaded)")
     real.add_argument("--seed", type=_number(int, 0), default=0, help="training seed")
     real.add_argument("--iters", type=_head_torso_iters, default=None, help="HEAD,TORSO iterations instead of the schedule fitted to --minutes (equal schedules for comparisons)")
     real.add_argument("--drive", action="append", default=[], metavar="AUDIO", help="another speech file to drive the trained run with (repeat for more); reports how its lips follow that speech")
@@ -609,7 +617,7 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("-o", "--output", required=True, help="output .mp4")
     rn.set_defaults(func=_cmd_render)
 
-    ev = sub.add_parser("evaluate", help="PSNR / SSIM (full frame, head, mouth), LMD, lip sync and LPIPS (with local weights) on held-out frames")
+    ev = sub.add_parser("evaluate", help="PSNR / SSIM (full frame, head, mouth), LMD, lip sync, and LPIPS and SyncNet LSE-D / LSE-C (with local weights) on held-out frames")
     ev.add_argument("run", help="run folder")
     ev.add_argument("dataset", help="dataset folder")
     ev.add_argument("--split", choices=("train", "test"), default="test")
@@ -617,6 +625,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--no-landmarks", action="store_true", help="skip the landmark metrics (LMD, lip-sync correlation and offset; dlib on every frame twice)")
     ev.add_argument("--lpips-backbone", default=None, help="AlexNet weights for LPIPS (default: the torch hub cache's alexnet-owt-7be5be79.pth, if there)")
     ev.add_argument("--lpips-linear", default=None, help="LPIPS linear layers (default: those the lpips package ships, if installed)")
+    ev.add_argument("--syncnet", default=None, metavar="CHECKPOINT", help="SyncNet checkpoint (syncnet_v2.model of the public release) for LSE-D / LSE-C; without it they read \"no weights\" (nothing is downloaded)")
     ev.add_argument("--json", action="store_true", help="one JSON object on stdout")
     ev.set_defaults(func=_cmd_evaluate)
     return parser

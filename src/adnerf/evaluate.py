@@ -6,6 +6,9 @@
 * With ``landmarks``: LMD, the inner-lip opening's correlation between render and truth and the
   audio-visual offset (:mod:`adnerf.landmark_metrics`), from the dlib landmarks of both.
 * With an :class:`~adnerf.lpips.LPIPS` model: LPIPS on full frames.
+* With a :class:`~adnerf.syncnet.SyncNet` model: LSE-D, LSE-C and SyncNet's offset of the renders
+  against the dataset's audio, and the same scores of the true frames (``*_true``), the value a
+  perfect render would get (:func:`syncnet_evaluation`).
 * The mouth opening seen in an image: the mean darkness of the mouth crop (luminance 0.5 and
   above counts 0, 0.1 and below counts 1; the open mouth's interior is dark, lips and skin are not). On synthetic data, the Pearson
   correlation over the test frames between this measure on the renders and the true jaw opening
@@ -31,8 +34,9 @@ from .train import Run
 
 if TYPE_CHECKING:
     from .lpips import LPIPS
+    from .syncnet import SyncNet
 
-__all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at"]
+__all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at", "syncnet_evaluation"]
 
 PSNR_CAP_DB = 100.0  # the PSNR reported for identical pixels (a finite number JSON can carry)
 
@@ -121,7 +125,44 @@ def landmark_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.
     return {**out, **landmark_metrics(pred.landmarks, true.landmarks).as_dict(), **series}
 
 
-def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip, *, landmarks: bool = False, lpips: "LPIPS | None" = None) -> dict:
+def syncnet_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.ndarray, model: "SyncNet") -> dict:
+    """SyncNet's scores (:func:`adnerf.syncnet.sync_scores`) of rendered frames and of the true
+    ones, against the dataset's audio under them.
+
+    Both are cropped around the same smoothed dlib face boxes of the true frames, so the two
+    scores differ only by what the render changed.
+
+    Returns:
+        ``lse_d``, ``lse_c``, ``syncnet_offset_frames``, ``syncnet_windows``, ``syncnet_curve``
+        of the renders and ``lse_d_true``, ``lse_c_true``, ``syncnet_offset_frames_true`` of the
+        true frames; or ``{"syncnet": reason}`` when the clip cannot be scored (not 25 frames per
+        second, frames not consecutive, no face found).
+    """
+    from .features import resample
+    from .io import AudioTrack
+    from .preprocess.landmarks import DlibFaceDetector, track_faces
+    from .syncnet import SAMPLE_RATE, SYNCNET_FPS, face_crops, sync_scores
+
+    if abs(ds.meta.fps - SYNCNET_FPS) > 1e-6:
+        return {"syncnet": f"needs 25 frames per second (the dataset has {ds.meta.fps:g})"}
+    if np.any(np.diff(frames) != 1):
+        return {"syncnet": "needs consecutive frames"}
+    track = track_faces(ds.frames[frames], DlibFaceDetector(), ds.parsing[frames])
+    if not track.detected.any():
+        return {"syncnet": "no face found in the true frames"}
+    audio = ds.audio
+    t0 = frames[0] / ds.meta.fps - audio.start  # seconds into the track
+    a, b = int(round(t0 * audio.sample_rate)), int(round((t0 + len(frames) / ds.meta.fps) * audio.sample_rate))
+    piece = np.zeros(b - a, np.float32)  # silence where the track does not reach
+    src = audio.samples[max(a, 0) : max(min(b, len(audio.samples)), 0)]
+    piece[max(-a, 0) : max(-a, 0) + len(src)] = src
+    samples = resample(AudioTrack(piece, audio.sample_rate), SAMPLE_RATE)
+    out = sync_scores(model, face_crops(rendered, track.boxes), samples).as_dict()
+    true = sync_scores(model, face_crops(ds.frames[frames], track.boxes), samples)
+    return {**out, "lse_d_true": true.lse_d, "lse_c_true": true.lse_c, "syncnet_offset_frames_true": true.offset_frames}
+
+
+def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip, *, landmarks: bool = False, lpips: "LPIPS | None" = None, syncnet: "SyncNet | None" = None) -> dict:
     """Metrics of rendered frames against the dataset's frames ``frames`` (in the same order).
 
     Args:
@@ -130,6 +171,7 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip,
         clip: The rendered frames.
         landmarks: Also the landmark metrics (dlib on renders and truth).
         lpips: Also LPIPS with this model (:func:`adnerf.lpips.load_lpips`).
+        syncnet: Also SyncNet's LSE-D / LSE-C with this model (:func:`syncnet_evaluation`).
     """
     gt = ds.frames[frames]
     full_psnr, full_ssim = image_metrics(clip.frames, gt)
@@ -150,6 +192,8 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip,
     if lpips is not None:
         device = next(lpips.buffers()).device
         out["lpips"] = float(np.mean([float(lpips(_to_tensor(clip.frames[i : i + 1]).to(device), _to_tensor(gt[i : i + 1]).to(device))[0]) for i in range(len(frames))]))
+    if syncnet is not None:
+        out.update(syncnet_evaluation(ds, frames, clip.frames, syncnet))
     if ds.truth is not None:
         jaw = ds.truth.jaw[frames]
         rendered = [mouth_darkness(c) for c in pred_mouth]
@@ -172,9 +216,9 @@ def check_matches_run(run: Run, ds: TalkingHeadDataset) -> None:
         raise DatasetError(f"{ds.root} does not match the run's training data ({'; '.join(differ)}); evaluate a run on a dataset of its own camera, frame rate and features")
 
 
-def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test", *, landmarks: bool = False, lpips: "LPIPS | None" = None) -> tuple[dict, RenderedClip]:
+def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test", *, landmarks: bool = False, lpips: "LPIPS | None" = None, syncnet: "SyncNet | None" = None) -> tuple[dict, RenderedClip]:
     """Render a split with its own poses and audio windows and measure it (see the module docs;
-    ``landmarks`` and ``lpips`` as in :func:`evaluate_clip`).
+    ``landmarks``, ``lpips`` and ``syncnet`` as in :func:`evaluate_clip`).
 
     Raises:
         DatasetError: ``ds`` has another camera, frame rate or feature kind than the run's data.
@@ -187,6 +231,6 @@ def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test", *, landm
         raise ValueError(f"the dataset's {split} split is empty")
     plate = ds.background.astype(np.float32) / 255.0
     clip = render_frames(run, ds.features[frames], ds.poses[frames], plate)
-    metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips)
+    metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips, syncnet=syncnet)
     metrics["split"] = split
     return metrics, clip
