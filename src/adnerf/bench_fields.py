@@ -17,7 +17,6 @@ out before the budget does.
 from __future__ import annotations
 
 import json
-import math
 import platform
 import resource
 import sys
@@ -34,6 +33,7 @@ import torch
 from .allocator import tune_allocator
 from .data import SceneMeta, load_dataset
 from .synth import SynthConfig, synthesize
+from .metrics import psnr_from_mse
 from .talking_head import ModelConfig, layer_bounds, model_config, render_frame, render_part
 from .train import TrainConfig, _Trainer
 
@@ -127,7 +127,7 @@ def _eval_psnr(tr: _Trainer, evalset: list[tuple[int, torch.Tensor]]) -> float:
         se += float((out.final.rgb.float().clamp(0, 1) - target).square().sum())
         n += target.numel()
     model.train()
-    return -10.0 * math.log10(max(se / max(n, 1), 1e-12))
+    return psnr_from_mse(se / max(n, 1))
 
 
 def _sync(device: str) -> None:

@@ -24,10 +24,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-from kornia.metrics import psnr, ssim
+from kornia.metrics import ssim
 
 from .data import LABEL_HEAD, MOUTH_CROP, DatasetError, SceneMeta, TalkingHeadDataset
 from .landmark_metrics import pearson
+from .metrics import psnr
 from .pose import HeadPose
 from .render_video import RenderedClip, render_frames
 from .train import Run
@@ -38,7 +39,6 @@ if TYPE_CHECKING:
 
 __all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at", "syncnet_evaluation"]
 
-PSNR_CAP_DB = 100.0  # the PSNR reported for identical pixels (a finite number JSON can carry)
 
 
 def mouth_boxes(ds: TalkingHeadDataset, frames: list[int], crop: float = MOUTH_CROP) -> np.ndarray:
@@ -79,7 +79,7 @@ def _to_tensor(frames: np.ndarray) -> torch.Tensor:
 def image_metrics(pred: np.ndarray, target: np.ndarray) -> tuple[float, float]:
     """Mean PSNR (dB) and SSIM (11-pixel window) over frames ``(n, H, W, 3)`` uint8."""
     p, t = _to_tensor(pred), _to_tensor(target)
-    per_frame = [float(psnr(p[i : i + 1], t[i : i + 1], 1.0)) for i in range(len(p))]
+    per_frame = [psnr(pred[i], target[i]) for i in range(len(pred))]
     window = min(11, p.shape[-1] // 2 * 2 - 1, p.shape[-2] // 2 * 2 - 1)
     s = float(ssim(p, t, window).mean())
     return float(np.mean(per_frame)), s
@@ -97,8 +97,7 @@ def head_metrics(pred: np.ndarray, target: np.ndarray, labels: np.ndarray) -> tu
         head = lab == LABEL_HEAD
         if not head.any():
             continue
-        mse = float((((p[head].astype(np.float64) - t[head]) / 255.0) ** 2).mean())
-        psnrs.append(PSNR_CAP_DB if mse == 0.0 else min(PSNR_CAP_DB, -10.0 * math.log10(mse)))
+        psnrs.append(psnr(p[head], t[head]))
         ys, xs = np.nonzero(head)
         y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
         if min(y1 - y0, x1 - x0) >= 7:

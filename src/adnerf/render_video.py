@@ -153,9 +153,10 @@ def render_frames(
         windows: Audio feature windows ``(N, 16, D)``.
         poses: Head poses ``(N, 4, 4)``.
         plate: Background ``(H, W, 3)`` float in [0, 1].
-        yaw: Added rotation about the head's vertical axis through its centre, degrees.
-        pitch: About the horizontal axis, degrees.
-        roll: About the viewing axis, degrees.
+        yaw: Added rotation about the head's vertical axis through its centre, degrees;
+            positive turns the face towards the image's left (the person's right).
+        pitch: About the horizontal axis, degrees; positive nods the face down.
+        roll: About the viewing axis, degrees; positive turns the head clockwise in the image.
         progress: Called as ``progress(done, total)``.
     """
     model = run.model

@@ -39,6 +39,7 @@ from .outputs import check_folder_output, ensure_writable
 from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
 from .fields import check_config_keys
 from .renderer import RenderOutput
+from .metrics import psnr_from_mse
 from .talking_head import (
     AMP_MODES,
     ModelConfig,
@@ -337,10 +338,6 @@ def _optimise(out: RenderOutput, target: torch.Tensor, mask: torch.Tensor, mask_
     return tuple(ranks.mean([float(loss.detach()), float(fine_mse.detach())]))  # type: ignore[return-value]
 
 
-def _psnr(mse: float) -> float:
-    return -10.0 * math.log10(max(mse, 1e-12))
-
-
 class _Trainer:
     def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool, ranks: Ranks = Ranks()) -> None:
         self.root, self.ds, self.tcfg, self.device, self.ranks = root, ds, tcfg, device, ranks
@@ -484,10 +481,11 @@ class _Trainer:
                 now = time.perf_counter()
                 rays_per_s = window_n * self.tcfg.rays / max(now - window_t, 1e-9)
                 samples_per_s = (self.samples - window_samples) / max(now - window_t, 1e-9)
-                loss, psnr = window_loss / window_n, _psnr(window_mse / window_n)
+                loss, mse = window_loss / window_n, window_mse / window_n
+                psnr = psnr_from_mse(mse)
                 window_t, window_n, window_loss, window_mse, window_samples = now, 0, 0.0, 0.0, self.samples
                 bar.set_postfix(loss=f"{loss:.2e}", psnr=f"{psnr:.2f}", rays_s=f"{rays_per_s:.0f}")
-                row = {"stage": stage, "step": step + 1, "loss": loss, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
+                row = {"stage": stage, "step": step + 1, "loss": loss, "mse": mse, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
                 self.log({**row, "elapsed": self.elapsed[stage]})
             if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
                 self.save()

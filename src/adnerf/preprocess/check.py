@@ -14,12 +14,12 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 
 from ..data import load_dataset
+from ..metrics import psnr
 from .headpose import align_poses, project_points
 from .parsing import layer_check
 from .pipeline import LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN
@@ -55,11 +55,6 @@ def _mouth_pixels(mouth: tuple[float, float, float], poses: np.ndarray, K: tuple
     return project_points(poses[:, :3, :3] @ np.asarray(mouth, dtype=np.float64) + poses[:, :3, 3], K)
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)) / 255.0**2
-    return math.inf if mse == 0 else 10.0 * math.log10(1.0 / mse)
-
-
 def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
     """Compare a preprocessed dataset with a synthetic scene's truth; see the module docstring.
 
@@ -85,7 +80,7 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
     rot, trans, sim = align_poses(est.poses, ref.truth.poses)
     iou = parsing_iou(est.parsing, ref.truth.parsing)
     seen = (ref.truth.parsing == 0).any(0)
-    plate_psnr = _psnr(est.background[seen], ref.background[seen])
+    plate_psnr = psnr(est.background[seen], ref.background[seen])
     mouth_err = np.linalg.norm(_mouth_pixels(est.meta.mouth, est.poses, est.meta.intrinsics) - _mouth_pixels(ref.meta.mouth, ref.truth.poses, ref.meta.intrinsics), axis=1)
     out = {
         "frames": int(len(est.poses)),
@@ -99,7 +94,7 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
         "iou_torso": iou[2],
         "iou_mean": float(np.mean(list(iou.values()))),
         "plate_psnr_seen": plate_psnr,
-        "plate_psnr_all": _psnr(est.background, ref.background),
+        "plate_psnr_all": psnr(est.background, ref.background),
         "mouth_error_median_px": float(np.median(mouth_err)),
         "mouth_error_max_px": float(mouth_err.max()),
         "bars": BARS,
