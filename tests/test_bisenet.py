@@ -12,7 +12,7 @@ import torch
 from adnerf.cli import main
 from adnerf.data import LABEL_HEAD, LABEL_TORSO
 from adnerf.preprocess.bisenet import CELEBAMASK_TO_LABEL, IMAGENET_MEAN, IMAGENET_STD, BiSeNet, BiSeNetParser, load_bisenet
-from adnerf.preprocess.parsing import make_parser
+from adnerf.preprocess.parsers import make_parser
 
 
 @pytest.fixture(scope="module")

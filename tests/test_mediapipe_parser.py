@@ -13,7 +13,7 @@ import pytest
 
 from adnerf.data import LABEL_HEAD, LABEL_TORSO
 from adnerf.preprocess.mediapipe_parser import MediapipeParser, split_at_jaw
-from adnerf.preprocess.parsing import make_parser
+from adnerf.preprocess.parsers import make_parser
 
 
 def _person(h: int = 120, w: int = 100) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .data import DatasetError, SceneMeta, check_poses
-from .features import FEATURE_KINDS, FeatureSpec, load_npy_windows, speech_windows
+from .features import FEATURE_KINDS, MODEL_RATE, FeatureSpec, load_npy_windows, speech_windows
 from .io import AudioTrack, MediaError, read_audio, write_video
 from .outputs import check_file_output, check_frames_folder
 from .pose import HeadPose
@@ -30,7 +30,6 @@ from .train import Run
 
 __all__ = ["RenderError", "check_render_outputs", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
 
-MODEL_RATE = 16000
 
 
 class RenderError(ValueError):

@@ -15,7 +15,11 @@ import cv2
 import numpy as np
 import torch
 
+from kornia.geometry.camera import project_points as kornia_project
+
+from ..cameras import intrinsics_matrix
 from ..data import LABEL_HEAD
+from ..pose import rotation_angle
 from .bundle import bundle_adjust, ellipsoid_points
 from .tracking import Tracks
 
@@ -101,8 +105,12 @@ def smooth_poses(poses: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def project_points(points: np.ndarray, K: tuple[float, float, float, float]) -> np.ndarray:
-    """Pixel positions ``(..., 2)`` (centre convention) of camera-frame points ``(..., 3)``."""
-    return np.stack([K[0] * points[..., 0] / points[..., 2] + K[2], K[1] * points[..., 1] / points[..., 2] + K[3]], -1)
+    """Pixel positions ``(..., 2)`` (centre convention) of camera-frame points ``(..., 3)``: numpy
+    in and out around the one pinhole projection (kornia's, as :meth:`adnerf.cameras.Camera.project`)."""
+    pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float64))
+    flat = pts.reshape(-1, 3)
+    uv = kornia_project(flat, intrinsics_matrix(*K, dtype=torch.float64).expand(flat.shape[0], 3, 3))
+    return uv.reshape(*pts.shape[:-1], 2).numpy()
 
 
 def align_poses(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -125,8 +133,7 @@ def align_poses(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarr
     sol, *_ = np.linalg.lstsq(A, -te.reshape(-1), rcond=None)
     g, s = sol[:3], sol[3]
     rel = Re @ G @ Rt.transpose(0, 2, 1)
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    rot = np.degrees(np.arccos(cos))
+    rot = np.degrees(rotation_angle(torch.from_numpy(np.ascontiguousarray(rel))).numpy())
     aligned = (np.einsum("nij,j->ni", Re, g) + te) / s
     return rot, np.linalg.norm(aligned - tt, axis=1), {"scale": float(s), "G": G, "g": g}
 

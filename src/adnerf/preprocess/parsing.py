@@ -5,7 +5,7 @@ A parser maps the whole clip ``(N, H, W, 3)`` uint8 RGB to label maps ``(N, H, W
 :mod:`adnerf.data`. Parsers see the whole clip, not one frame, because the camera is static and
 the background is the same in every frame: the default parser exploits exactly that.
 
-Backends (:func:`make_parser`): ``"classical"`` (default, no weights), a temporal background model
+Backends (:func:`adnerf.preprocess.parsers.make_parser`): ``"classical"`` (default, no weights), a temporal background model
 plus GrabCut per frame, then the head/torso split at the neck (see :class:`ClassicalParser`).
 Learned backends (BiSeNet with a user-supplied CelebAMask-HQ checkpoint, mediapipe's bundled
 models) plug in behind the same :class:`Parser` protocol.
@@ -22,7 +22,7 @@ from scipy.ndimage import uniform_filter1d
 
 from ..data import LABEL_HEAD, LABEL_TORSO
 
-__all__ = ["Parser", "ClassicalParser", "make_parser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "person_hull", "PARSERS", "JAW_MARGIN"]
+__all__ = ["Parser", "ClassicalParser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "person_hull", "JAW_MARGIN"]
 
 Progress = Callable[[int, int], None]
 
@@ -345,34 +345,3 @@ def _has_both(mask: np.ndarray) -> bool:
     fg = np.isin(mask, (cv2.GC_FGD, cv2.GC_PR_FGD)).any()
     bg = np.isin(mask, (cv2.GC_BGD, cv2.GC_PR_BGD)).any()
     return bool(fg and bg)
-
-
-PARSERS = ("classical", "mediapipe", "bisenet:CHECKPOINT")
-
-
-def make_parser(spec: str) -> Parser:
-    """A parser by name: ``"classical"`` (no weights), ``"mediapipe"`` (mediapipe 0.10.21's bundled
-    models, an opt-in install, see :mod:`adnerf.preprocess.mediapipe_parser`) or ``"bisenet:PATH"``
-    (a user's 19-class face-parsing checkpoint, see :mod:`adnerf.preprocess.bisenet`; on CUDA when
-    available).
-
-    Raises:
-        ValueError: Unknown name, a checkpoint that cannot be loaded, or mediapipe missing.
-    """
-    if spec == "classical":
-        return ClassicalParser()
-    if spec == "mediapipe":
-        from .mediapipe_parser import MediapipeParser, import_mediapipe
-
-        try:
-            import_mediapipe()
-        except ImportError as exc:
-            raise ValueError(str(exc)) from exc
-        return MediapipeParser()
-    if spec.startswith("bisenet:"):
-        import torch
-
-        from .bisenet import BiSeNetParser
-
-        return BiSeNetParser(spec.split(":", 1)[1], device="cuda" if torch.cuda.is_available() else "cpu")
-    raise ValueError(f"unknown parser {spec!r}; available: {', '.join(PARSERS)}")

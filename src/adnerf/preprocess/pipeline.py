@@ -41,6 +41,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from ..atomic import atomic_path
 from ..data import LABEL_HEAD, LABEL_TORSO, DatasetError, SceneMeta, save_dataset, tail_split, write_wav
 from ..io import AudioTrack, MediaError, read_audio, read_video
 from ..outputs import OutputError, check_folder_output
@@ -172,22 +173,19 @@ class _Work:
 
     def finish(self, step: str, seconds: float) -> None:
         self.record[step] = {"key": self.keys[step], "seconds": round(seconds, 3)}
-        tmp = self.record_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.record, indent=1))
-        tmp.replace(self.record_path)
+        with atomic_path(self.record_path) as tmp:
+            tmp.write_text(json.dumps(self.record, indent=1))
 
     def save(self, name: str, array: np.ndarray) -> None:
-        tmp = self.folder / f".{name}.tmp.npy"
-        np.save(tmp, array)
-        tmp.replace(self.folder / f"{name}.npy")
+        with atomic_path(self.folder / f"{name}.npy") as tmp:
+            np.save(tmp, array)
 
     def load(self, name: str) -> np.ndarray:
         return np.load(self.folder / f"{name}.npy")
 
     def save_json(self, name: str, doc: dict) -> None:
-        tmp = self.folder / f".{name}.tmp"
-        tmp.write_text(json.dumps(doc, indent=1))
-        tmp.replace(self.folder / f"{name}.json")
+        with atomic_path(self.folder / f"{name}.json") as tmp:
+            tmp.write_text(json.dumps(doc, indent=1))
 
     def load_json(self, name: str) -> dict:
         return json.loads((self.folder / f"{name}.json").read_text())
@@ -274,7 +272,7 @@ def _step_features(work: _Work, config: PreprocessConfig, bar: Bar) -> None:
 
 
 def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
-    from .parsing import make_parser
+    from .parsers import make_parser
 
     frames = work.load("frames")
     try:
@@ -441,8 +439,8 @@ def _step_plate(work: _Work, bar: Bar) -> dict:
     from .plate import background_plate
 
     plate = background_plate(work.load("frames"), _labels(work))
-    cv2.imwrite(str(work.folder / ".background.tmp.png"), cv2.cvtColor(plate.image, cv2.COLOR_RGB2BGR))
-    (work.folder / ".background.tmp.png").replace(work.folder / "background.png")
+    with atomic_path(work.folder / "background.png") as tmp:
+        cv2.imwrite(str(tmp), cv2.cvtColor(plate.image, cv2.COLOR_RGB2BGR))
     doc = {"filled_fraction": plate.filled_fraction}
     work.save_json("plate", doc)
     bar("plate", 1, 1)
