@@ -17,7 +17,7 @@ from adnerf.encodings import TriPlaneEncoding
 from adnerf.pose import HeadPose, euler_rotation
 from adnerf.synth import SynthConfig, synthesize
 from adnerf.talking_head import TalkingHead, layer_bounds, layer_occupancy, mixed_precision, model_config, render_frame, render_part, update_occupancy
-from adnerf.train import RunError, TrainConfig, _load_model_state, train
+from adnerf.train import RunError, TrainConfig, load_model_state, train
 
 TINY = SynthConfig(seconds=1.6, size=32, voice="formant", seed=5)
 
@@ -148,12 +148,12 @@ def test_checkpoints_without_grids_load_and_wrong_weights_fail(tiny: Path) -> No
     model, _ = _model(tiny)
     state = {k: v for k, v in model.state_dict().items() if "_occupancy." not in k}
     fresh, _ = _model(tiny)
-    _load_model_state(fresh, state, Path("old.pt"))  # a run from before the grids: they stay unestimated
+    load_model_state(fresh, state, Path("old.pt"))  # a run from before the grids: they stay unestimated
     assert not fresh.head_occupancy.estimated
     with pytest.raises(RunError, match="do not match"):
-        _load_model_state(fresh, {**state, "stray.weight": torch.zeros(1)}, Path("bad.pt"))
+        load_model_state(fresh, {**state, "stray.weight": torch.zeros(1)}, Path("bad.pt"))
     with pytest.raises(RunError, match="do not match"):
-        _load_model_state(fresh, {k: v for k, v in state.items() if not k.startswith("head.")}, Path("bad.pt"))
+        load_model_state(fresh, {k: v for k, v in state.items() if not k.startswith("head.")}, Path("bad.pt"))
 
 
 def test_bench_model_configs(tiny: Path) -> None:

@@ -253,7 +253,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from .outputs import OutputError
     from .render_video import RenderError
     from .preprocess.pipeline import PreprocessError
-    from .train import RunError
+    from .run_folder import RunError
 
     return (DatasetError, FeatureError, MediaError, OutputError, PreprocessError, RenderError, RunError)
 
@@ -311,7 +311,8 @@ def _cmd_check_preprocess(args: argparse.Namespace) -> int:
 def _train_config(args: argparse.Namespace):
     """The schedule: ``--config`` keys, then ``--amp`` and ``--iters``, over the defaults (a new
     run) or over the run's stored schedule (``--resume``), so a resume changes only what is given."""
-    from .train import RunError, TrainConfig, stored_config
+    from .run_folder import RunError, stored_config
+    from .train_config import TrainConfig
 
     doc: object = {}
     if args.config:
@@ -379,7 +380,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from .render_video import check_render_outputs, render_audio_video
-    from .train import load_run
+    from .run_folder import load_run
 
     if not args.output.endswith(".mp4"):
         raise CliError(f"{args.output}: the output must be an .mp4 file")
@@ -419,7 +420,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .data import load_dataset
     from .evaluate import evaluate_run
-    from .train import load_run
+    from .run_folder import load_run
 
     from .lpips import lpips_if_available
     from .syncnet import load_syncnet

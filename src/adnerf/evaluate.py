@@ -31,7 +31,7 @@ from .landmark_metrics import pearson
 from .metrics import psnr
 from .pose import HeadPose
 from .render_video import RenderedClip, render_frames
-from .train import Run
+from .run_folder import Run
 
 if TYPE_CHECKING:
     from .lpips import LPIPS

@@ -26,7 +26,7 @@ from .io import AudioTrack, MediaError, read_audio, write_video
 from .outputs import check_file_output, check_frames_folder
 from .pose import HeadPose
 from .talking_head import FrameRender, render_frame
-from .train import Run
+from .run_folder import Run
 
 __all__ = ["RenderError", "check_render_outputs", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
 

@@ -13,19 +13,15 @@ opacities against the parsing mask of the layer being trained.
 Stage 2 (``torso``) freezes the head and the audio encoders and trains the torso fields on the full
 frames, with the stage-1 head rendered over the plate as the torso's background.
 
-A run folder holds ``run.json`` (dataset, model and training configuration), ``background.png``,
-``checkpoint.pt`` (written to a temporary file and renamed, every ``checkpoint_every`` iterations
-and at the end of each stage), ``log.jsonl`` (one JSON object per logged iteration) and
-``head_renders.pt`` (the cached stage-1 renders that stage 2 trains against).
+Training writes a run folder (:mod:`adnerf.run_folder` describes it and reads it back), with a
+checkpoint every ``checkpoint_every`` iterations and at the end of each stage. The schedule is
+:class:`adnerf.train_config.TrainConfig`.
 """
 
 from __future__ import annotations
 
 import json
-import math
-import shutil
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -37,11 +33,11 @@ from .atomic import atomic_path
 from .distributed import Ranks, init_ranks
 from .outputs import check_folder_output, ensure_writable
 from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
-from .fields import check_config_keys
 from .renderer import RenderOutput
 from .metrics import psnr_from_mse
+from .run_folder import RESUMABLE, Run, RunError, check_same_dataset, load_model_state, load_run, read_checkpoint, read_run_doc, resumed_config, save_atomic, stored_config, write_run
+from .train_config import TrainConfig
 from .talking_head import (
-    AMP_MODES,
     ModelConfig,
     TalkingHead,
     layer_bounds,
@@ -53,256 +49,8 @@ from .talking_head import (
     update_occupancy,
 )
 
-__all__ = ["RESUMABLE", "RunError", "TrainConfig", "load_run", "resumed_config", "stored_config", "train"]
-
-RUN_FORMAT = "adnerf-run"
-RUN_VERSION = 1
-
-
-class RunError(RuntimeError):
-    """A run folder is missing, incomplete, of another version, or would be overwritten."""
-
-
-@dataclass
-class TrainConfig:
-    """Training schedule.
-
-    Attributes:
-        head_iters: Stage-1 iterations.
-        torso_iters: Stage-2 iterations. Measured on the 18 s demo scene with its stage-1 head fixed:
-            2500 -> 4500 iterations raised the held-out torso PSNR from 23.0 to 24.1 dB and the
-            background's from 36.3 to 38.1 dB (full frame 29.2 -> 30.1). The torso also covers head
-            pixels (it is composited over the head) and gains more per second than the head, so
-            the default schedule gives it many. On the 30 s demo scene, 4000 -> 3000 iterations
-            cost 0.9 dB of full-frame held-out PSNR (31.4 -> 30.5) and nothing in the mouth crop
-            (26.5 dB both), and saved the 2 minutes that keep the demo within 15 minutes.
-        rays: Rays per iteration (all from one frame).
-        lr: Initial learning rate of the fields (Adam).
-        lr_audio: Initial learning rate of the audio encoders.
-        lr_final: Final learning rate as a fraction of the initial one (exponential decay).
-        att_start: Fraction of stage 1 after which AudioAttNet smooths the audio codes.
-        mouth_rays: Fraction of each stage-1 batch drawn around the mouth (the dataset's mouth point
-            projected with the frame's pose, a square of side ``MOUTH_CROP`` units); the rest is
-            drawn from the whole head box.
-        torso_person_rays: Fraction of each stage-2 batch drawn among the frame's torso pixels
-            (the rest uniformly in the torso box, which is mostly background).
-        mask_weight: Weight of the opacity loss against the parsing (stage 1: head pixels opaque,
-            others clear; stage 2: torso pixels). Without it a static plate lets a layer stay
-            half transparent and mix in the plate's colour, which a new background exposes.
-        occupancy_start: Fraction of each stage after which the layer's occupancy grid is
-            estimated and empty space skipped (the field needs a rough shape first).
-        occupancy_every: Iterations between updates of the occupancy grid (each update
-            evaluates both fields once per cell under the current frame's condition).
-        checkpoint_every: Iterations between checkpoints.
-        log_every: Iterations between log lines.
-        amp: Mixed precision of the field evaluations: ``"auto"`` (bfloat16 on CUDA, off on
-            CPU), ``"bf16"`` or ``"off"``; the compositor and the losses stay in float32.
-        seed: Seed of the initialisation and of the ray sampling.
-        preset: Field preset (``"fast"`` or ``"paper"``; see :func:`~adnerf.talking_head.model_config`).
-    """
-
-    head_iters: int = 3600
-    torso_iters: int = 3000
-    rays: int = 1024
-    lr: float = 1e-2
-    lr_audio: float = 2e-3
-    lr_final: float = 0.1
-    att_start: float = 0.6
-    mouth_rays: float = 0.25
-    torso_person_rays: float = 0.5
-    mask_weight: float = 0.1
-    occupancy_start: float = 0.1
-    occupancy_every: int = 16
-    checkpoint_every: int = 250
-    log_every: int = 25
-    amp: str = "auto"
-    seed: int = 0
-    preset: str = "fast"
-
-    def validate(self) -> None:
-        """Raise ``ValueError`` on impossible settings."""
-        for name, kind in _FIELD_TYPES.items():
-            value = getattr(self, name)
-            if kind is float and not math.isfinite(value):
-                raise ValueError(f"{name} must be a finite number; got {value!r}")
-        if self.head_iters < 0 or self.torso_iters < 0:
-            raise ValueError("iteration counts must be >= 0")
-        if self.rays < 1 or self.checkpoint_every < 1 or self.log_every < 1 or self.occupancy_every < 1:
-            raise ValueError("rays, checkpoint_every, log_every and occupancy_every must be >= 1")
-        if not (self.lr > 0 and self.lr_audio > 0 and 0 < self.lr_final <= 1):
-            raise ValueError("learning rates must be positive and lr_final in (0, 1]")
-        if not (0 <= self.att_start <= 1 and 0 <= self.occupancy_start <= 1):
-            raise ValueError("att_start and occupancy_start must lie in [0, 1]")
-        if self.amp not in AMP_MODES:
-            raise ValueError(f"amp must be one of {AMP_MODES}; got {self.amp!r}")
-        if self.mask_weight < 0:
-            raise ValueError("mask_weight must be >= 0")
-        if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1):
-            raise ValueError("mouth_rays and torso_person_rays must lie in [0, 1]")
-        if self.preset not in PRESETS:
-            raise ValueError(f"preset must be one of {PRESETS}; got {self.preset!r}")
-
-    @staticmethod
-    def from_dict(d: object, base: "TrainConfig | None" = None) -> "TrainConfig":
-        """From a dict (a ``--config`` JSON file) whose keys replace those of ``base`` (default: the
-        defaults). Unknown keys, a non-object and a value of the wrong type (named by its key) are
-        ``TypeError`` / ``ValueError``."""
-        if not isinstance(d, dict):
-            raise TypeError(f"a training config is a JSON object of TrainConfig fields; got a {type(d).__name__}")
-        check_config_keys(d, TrainConfig, "training config")
-        for key, value in d.items():
-            kind = _FIELD_TYPES[key]
-            ok = isinstance(value, str) if kind is str else isinstance(value, kind if kind is int else (int, float)) and not isinstance(value, bool)
-            if not ok:
-                raise TypeError(f"training config key {key!r} must be {_TYPE_WORDS[kind]}; got {value!r}")
-        return replace(base or TrainConfig(), **{k: float(v) if _FIELD_TYPES[k] is float else v for k, v in d.items()})
-
-
-PRESETS = ("fast", "paper")
-_FIELD_TYPES: dict[str, type] = {f.name: {"int": int, "float": float, "str": str}[f.type] for f in fields(TrainConfig)}  # type: ignore[index]
-_TYPE_WORDS = {int: "an integer", float: "a number", str: "a string"}
-# What a resumed run may change: its length and how it is checkpointed, logged and computed.
-# Everything else (rays, rates, seed, preset, ...) would make the continuation another run.
-RESUMABLE = ("head_iters", "torso_iters", "amp", "checkpoint_every", "log_every")
-
-
-def resumed_config(stored: TrainConfig, given: TrainConfig | None) -> TrainConfig:
-    """The schedule a resume continues with: ``stored``, or ``given`` when it differs from it only
-    in :data:`RESUMABLE` keys.
-
-    Raises:
-        RunError: ``given`` changes a key a resume cannot change.
-    """
-    if given is None:
-        return stored
-    changed = [f"{f.name} {getattr(stored, f.name)!r} -> {getattr(given, f.name)!r}" for f in fields(TrainConfig) if f.name not in RESUMABLE and getattr(given, f.name) != getattr(stored, f.name)]
-    if changed:
-        raise RunError(
-            f"a resume continues the run's stored training config and can change only {', '.join(RESUMABLE)}; "
-            f"this would change {'; '.join(changed)}. Train a new run (-o NEW) for other settings"
-        )
-    return given
-
-
-def _write_json_atomic(path: Path, doc: dict) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(doc, indent=1))
-
-
-def _save_atomic(obj: object, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
-
-
-@dataclass
-class Run:
-    """A loaded run: its configuration and model (on the requested device).
-
-    Attributes:
-        root: The run folder.
-        dataset: The dataset folder it was trained on.
-        model: The model with the latest checkpoint's weights.
-        train_config: The schedule.
-        head_step: Finished stage-1 iterations.
-        torso_step: Finished stage-2 iterations.
-        meta: The dataset's ``meta.json`` content (camera, fps, boxes, feature kind).
-        elapsed: Training seconds per stage (``{"head": s, "torso": s}``), from the checkpoint.
-    """
-
-    root: Path
-    dataset: Path
-    model: TalkingHead
-    train_config: TrainConfig
-    head_step: int
-    torso_step: int
-    meta: dict
-    elapsed: dict = field(default_factory=dict)
-
-    @property
-    def smooth_audio(self) -> bool:
-        """Whether AudioAttNet was on at the end of what was trained."""
-        return self.head_step > self.train_config.att_start * self.train_config.head_iters
-
-    @property
-    def has_torso(self) -> bool:
-        """Whether stage 2 ran at all."""
-        return self.torso_step > 0
-
-
-def _read_run_doc(root: Path) -> dict:
-    """``run.json`` of a run folder, checked for format and version."""
-    path = root / "run.json"
-    if not path.exists():
-        raise RunError(f"{root}: not an adnerf run (no run.json); train one with `adnerf train DATASET -o {root}`")
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise RunError(f"{path}: unreadable or damaged ({exc}); train a new run into another folder") from exc
-    if not isinstance(doc, dict) or doc.get("format") != RUN_FORMAT or doc.get("version") != RUN_VERSION:
-        found = (doc.get("format"), doc.get("version")) if isinstance(doc, dict) else (None, None)
-        raise RunError(f"{path}: format {found[0]!r} version {found[1]!r}; this adnerf reads {RUN_FORMAT} version {RUN_VERSION}")
-    return doc
-
-
-def stored_config(root: str | Path) -> TrainConfig:
-    """The training schedule stored in a run folder's ``run.json``."""
-    return TrainConfig.from_dict(_read_run_doc(Path(root))["train"])
-
-
-_CHECKPOINT_KEYS = ("model", "opt_head", "opt_torso", "generator", "head_step", "torso_step", "elapsed")
-
-
-def _read_checkpoint(path: Path, device: str | torch.device) -> dict:
-    """A checkpoint file's content; a missing, empty or damaged file is a :class:`RunError`."""
-    if not path.exists():
-        raise RunError(f"{path.parent}: no checkpoint.pt yet (training has not written one); train with `adnerf train DATASET -o {path.parent}`")
-    try:
-        ckpt = torch.load(path, map_location=device, weights_only=False)
-    except Exception as exc:  # torch.load raises many types on a damaged file (EOFError, RuntimeError, UnpicklingError, ...)
-        raise RunError(
-            f"{path}: damaged or incomplete checkpoint ({type(exc).__name__}: {exc}); adnerf writes checkpoints atomically, "
-            "so the file was changed outside adnerf: restore it, or train a new run into another folder"
-        ) from exc
-    if not isinstance(ckpt, dict) or any(k not in ckpt for k in _CHECKPOINT_KEYS):
-        raise RunError(f"{path}: not an adnerf checkpoint (missing entries); restore it, or train a new run into another folder")
-    return ckpt
-
-
-def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
-    """Load a run folder's configuration and latest checkpoint.
-
-    Raises:
-        RunError: Missing folder, ``run.json`` or checkpoint, a damaged one, or another format version.
-    """
-    root = Path(root)
-    doc = _read_run_doc(root)
-    ckpt_path = root / "checkpoint.pt"
-    ckpt = _read_checkpoint(ckpt_path, device)
-    model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
-    _load_model_state(model, ckpt["model"], ckpt_path)
-    model.eval()
-    return Run(root, Path(doc["dataset"]), model, TrainConfig.from_dict(doc["train"]), ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"])
-
-
-def _check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, root: Path) -> None:
-    """Refuse to resume ``root`` on a dataset other than the one it was trained on."""
-    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
-    stored = doc.get("dataset_sha256")
-    same = stored == ds.fingerprint() if stored else json.loads(json.dumps(meta)) == doc.get("meta")
-    if not same:
-        raise RunError(
-            f"{root} was trained on another dataset ({doc.get('dataset')}) than {dataset}: its content differs. "
-            f"A resume continues on the same data; resume with that dataset, or train a new run (-o NEW) on {dataset}"
-        )
-
-
-def _load_model_state(model: TalkingHead, state: dict, path: Path) -> None:
-    """Load weights; a checkpoint from before occupancy grids existed leaves them unestimated."""
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    missing = [k for k in missing if not k.split(".")[0].endswith("_occupancy")]
-    if missing or unexpected:
-        raise RunError(f"{path}: weights do not match the run's model (missing {missing[:3]}, unexpected {unexpected[:3]})")
-
+# The run folder and the schedule live in their own modules; re-exported for existing imports.
+__all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "load_run", "resumed_config", "stored_config", "train"]
 
 class _Schedule:
     """Exponential decay from each group's initial rate ``base`` to ``final * base`` at ``iters``.
@@ -381,12 +129,12 @@ class _Trainer:
             "torso_step": self.torso_step,
             "elapsed": self.elapsed,
         }
-        _save_atomic(state, self.root / "checkpoint.pt")
+        save_atomic(state, self.root / "checkpoint.pt")
 
     def load(self, ckpt: dict) -> None:
-        """Continue from checkpoint content (see :func:`_read_checkpoint`); the log keeps only the
+        """Continue from checkpoint content (see :func:`read_checkpoint`); the log keeps only the
         lines of the steps the checkpoint holds, so a resumed run logs each step once."""
-        _load_model_state(self.model, ckpt["model"], self.root / "checkpoint.pt")
+        load_model_state(self.model, ckpt["model"], self.root / "checkpoint.pt")
         self.opt_head.load_state_dict(ckpt["opt_head"])
         self.opt_torso.load_state_dict(ckpt["opt_torso"])
         self.generator.set_state(ckpt["generator"].cpu())  # loaded with map_location=device
@@ -537,7 +285,7 @@ class _Trainer:
             pose = self.ds.head_pose(frame, device=self.device)
             out[frame, pix] = render_head_on_plate(self.model, self.rays[pix], pose, codes[frame], self.plate[pix], amp=self.tcfg.amp)
         if self.ranks.main:
-            _save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
+            save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
         return out
 
     def torso_stage(self, max_steps: int | None) -> None:
@@ -615,12 +363,12 @@ def train(
     if resume:
         if not run_json.exists():
             raise RunError(f"{root}: nothing to resume (no run.json); drop --resume to start a new run")
-        doc = _read_run_doc(root)
+        doc = read_run_doc(root)
         mcfg = ModelConfig.from_dict(doc["model"])
         tcfg = resumed_config(TrainConfig.from_dict(doc["train"]), config)
-        _check_same_dataset(doc, ds, dataset, root)
+        check_same_dataset(doc, ds, dataset, root)
         if (root / "checkpoint.pt").exists():
-            ckpt = _read_checkpoint(root / "checkpoint.pt", device)
+            ckpt = read_checkpoint(root / "checkpoint.pt", device)
     else:
         if run_json.exists() or (root / "checkpoint.pt").exists():
             raise RunError(f"{root}: a run already exists there; pass --resume to continue it or choose another folder")
@@ -642,7 +390,7 @@ def train(
     if ckpt is not None:
         trainer.load(ckpt)
     if ranks.main:
-        _write_run(root, dataset, ds, mcfg, tcfg, {"world_size": ranks.world, "backend": ranks.backend, "devices": devices})
+        write_run(root, dataset, ds, mcfg, tcfg, {"world_size": ranks.world, "backend": ranks.backend, "devices": devices})
     ranks.barrier()
     budget = max_steps
     if stage in ("head", "all"):
@@ -656,22 +404,3 @@ def train(
         trainer.save()
     ranks.barrier()
     return root
-
-
-def _write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, distributed: dict) -> None:
-    """``run.json`` (with how the run is trained: processes, backend, devices) and the plate."""
-    root.mkdir(parents=True, exist_ok=True)
-    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
-    doc = {
-        "format": RUN_FORMAT,
-        "version": RUN_VERSION,
-        "dataset": str(Path(dataset).resolve()),
-        "dataset_sha256": ds.fingerprint(),
-        "model": mcfg.to_dict(),
-        "train": asdict(tcfg),
-        "meta": meta,
-        "distributed": distributed,
-    }
-    _write_json_atomic(root / "run.json", doc)
-    shutil.copyfile(Path(dataset) / "background.png", root / "background.png")
-

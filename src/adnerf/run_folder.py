@@ -1,0 +1,194 @@
+"""The run folder: what training writes and rendering, evaluation and resuming read.
+
+A run folder holds ``run.json`` (format and version, the dataset's path and fingerprint, the model
+and training configuration, the dataset's camera and audio metadata, how it was trained:
+processes, backend, devices), ``background.png`` (the dataset's plate), ``checkpoint.pt`` (model,
+optimisers, random generator, finished steps and training seconds; written atomically),
+``log.jsonl`` (one JSON object per logged iteration) and ``head_renders.pt`` (the cached stage-1
+renders stage 2 trains against). :func:`load_run` gives a :class:`Run`; training
+(:mod:`adnerf.train`) is the only writer.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+
+from .atomic import atomic_path
+from .data import TalkingHeadDataset
+from .talking_head import ModelConfig, TalkingHead
+from .train_config import TrainConfig
+
+__all__ = ["RESUMABLE", "RUN_FORMAT", "RUN_VERSION", "Run", "RunError", "load_run", "resumed_config", "stored_config", "write_run"]
+
+RUN_FORMAT = "adnerf-run"
+RUN_VERSION = 1
+
+
+class RunError(RuntimeError):
+    """A run folder is missing, incomplete, of another version, or would be overwritten."""
+
+
+# What a resumed run may change: its length and how it is checkpointed, logged and computed.
+# Everything else (rays, rates, seed, preset, ...) would make the continuation another run.
+RESUMABLE = ("head_iters", "torso_iters", "amp", "checkpoint_every", "log_every")
+
+
+def resumed_config(stored: TrainConfig, given: TrainConfig | None) -> TrainConfig:
+    """The schedule a resume continues with: ``stored``, or ``given`` when it differs from it only
+    in :data:`RESUMABLE` keys.
+
+    Raises:
+        RunError: ``given`` changes a key a resume cannot change.
+    """
+    if given is None:
+        return stored
+    changed = [f"{f.name} {getattr(stored, f.name)!r} -> {getattr(given, f.name)!r}" for f in fields(TrainConfig) if f.name not in RESUMABLE and getattr(given, f.name) != getattr(stored, f.name)]
+    if changed:
+        raise RunError(
+            f"a resume continues the run's stored training config and can change only {', '.join(RESUMABLE)}; "
+            f"this would change {'; '.join(changed)}. Train a new run (-o NEW) for other settings"
+        )
+    return given
+
+
+def write_json_atomic(path: Path, doc: dict) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(doc, indent=1))
+
+
+def save_atomic(obj: object, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+@dataclass
+class Run:
+    """A loaded run: its configuration and model (on the requested device).
+
+    Attributes:
+        root: The run folder.
+        dataset: The dataset folder it was trained on.
+        model: The model with the latest checkpoint's weights.
+        train_config: The schedule.
+        head_step: Finished stage-1 iterations.
+        torso_step: Finished stage-2 iterations.
+        meta: The dataset's ``meta.json`` content (camera, fps, boxes, feature kind).
+        elapsed: Training seconds per stage (``{"head": s, "torso": s}``), from the checkpoint.
+    """
+
+    root: Path
+    dataset: Path
+    model: TalkingHead
+    train_config: TrainConfig
+    head_step: int
+    torso_step: int
+    meta: dict
+    elapsed: dict = field(default_factory=dict)
+
+    @property
+    def smooth_audio(self) -> bool:
+        """Whether AudioAttNet was on at the end of what was trained."""
+        return self.head_step > self.train_config.att_start * self.train_config.head_iters
+
+    @property
+    def has_torso(self) -> bool:
+        """Whether stage 2 ran at all."""
+        return self.torso_step > 0
+
+
+def read_run_doc(root: Path) -> dict:
+    """``run.json`` of a run folder, checked for format and version."""
+    path = root / "run.json"
+    if not path.exists():
+        raise RunError(f"{root}: not an adnerf run (no run.json); train one with `adnerf train DATASET -o {root}`")
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise RunError(f"{path}: unreadable or damaged ({exc}); train a new run into another folder") from exc
+    if not isinstance(doc, dict) or doc.get("format") != RUN_FORMAT or doc.get("version") != RUN_VERSION:
+        found = (doc.get("format"), doc.get("version")) if isinstance(doc, dict) else (None, None)
+        raise RunError(f"{path}: format {found[0]!r} version {found[1]!r}; this adnerf reads {RUN_FORMAT} version {RUN_VERSION}")
+    return doc
+
+
+def stored_config(root: str | Path) -> TrainConfig:
+    """The training schedule stored in a run folder's ``run.json``."""
+    return TrainConfig.from_dict(read_run_doc(Path(root))["train"])
+
+
+CHECKPOINT_KEYS = ("model", "opt_head", "opt_torso", "generator", "head_step", "torso_step", "elapsed")
+
+
+def read_checkpoint(path: Path, device: str | torch.device) -> dict:
+    """A checkpoint file's content; a missing, empty or damaged file is a :class:`RunError`."""
+    if not path.exists():
+        raise RunError(f"{path.parent}: no checkpoint.pt yet (training has not written one); train with `adnerf train DATASET -o {path.parent}`")
+    try:
+        ckpt = torch.load(path, map_location=device, weights_only=False)
+    except Exception as exc:  # torch.load raises many types on a damaged file (EOFError, RuntimeError, UnpicklingError, ...)
+        raise RunError(
+            f"{path}: damaged or incomplete checkpoint ({type(exc).__name__}: {exc}); adnerf writes checkpoints atomically, "
+            "so the file was changed outside adnerf: restore it, or train a new run into another folder"
+        ) from exc
+    if not isinstance(ckpt, dict) or any(k not in ckpt for k in CHECKPOINT_KEYS):
+        raise RunError(f"{path}: not an adnerf checkpoint (missing entries); restore it, or train a new run into another folder")
+    return ckpt
+
+
+def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
+    """Load a run folder's configuration and latest checkpoint.
+
+    Raises:
+        RunError: Missing folder, ``run.json`` or checkpoint, a damaged one, or another format version.
+    """
+    root = Path(root)
+    doc = read_run_doc(root)
+    ckpt_path = root / "checkpoint.pt"
+    ckpt = read_checkpoint(ckpt_path, device)
+    model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
+    load_model_state(model, ckpt["model"], ckpt_path)
+    model.eval()
+    return Run(root, Path(doc["dataset"]), model, TrainConfig.from_dict(doc["train"]), ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"])
+
+
+def check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, root: Path) -> None:
+    """Refuse to resume ``root`` on a dataset other than the one it was trained on."""
+    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
+    stored = doc.get("dataset_sha256")
+    same = stored == ds.fingerprint() if stored else json.loads(json.dumps(meta)) == doc.get("meta")
+    if not same:
+        raise RunError(
+            f"{root} was trained on another dataset ({doc.get('dataset')}) than {dataset}: its content differs. "
+            f"A resume continues on the same data; resume with that dataset, or train a new run (-o NEW) on {dataset}"
+        )
+
+
+def load_model_state(model: TalkingHead, state: dict, path: Path) -> None:
+    """Load weights; a checkpoint from before occupancy grids existed leaves them unestimated."""
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.split(".")[0].endswith("_occupancy")]
+    if missing or unexpected:
+        raise RunError(f"{path}: weights do not match the run's model (missing {missing[:3]}, unexpected {unexpected[:3]})")
+
+
+def write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, distributed: dict) -> None:
+    """``run.json`` (with how the run is trained: processes, backend, devices) and the plate."""
+    root.mkdir(parents=True, exist_ok=True)
+    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
+    doc = {
+        "format": RUN_FORMAT,
+        "version": RUN_VERSION,
+        "dataset": str(Path(dataset).resolve()),
+        "dataset_sha256": ds.fingerprint(),
+        "model": mcfg.to_dict(),
+        "train": asdict(tcfg),
+        "meta": meta,
+        "distributed": distributed,
+    }
+    write_json_atomic(root / "run.json", doc)
+    shutil.copyfile(Path(dataset) / "background.png", root / "background.png")
