@@ -27,6 +27,7 @@ from adnerf.outputs import (
     check_frames_folder,
 )
 from adnerf.synth import SynthConfig, synthesize
+from adnerf.layers import RadianceLayer
 from adnerf.train import TrainConfig, train
 
 SMALL = SynthConfig(seconds=1.2, size=24, voice="formant", seed=5)
@@ -254,14 +255,14 @@ def test_training_goes_through_frames_without_torso_and_fully_skipped_steps(scen
     cfg = TrainConfig(**{**CFG, "occupancy_start": 0.0, "occupancy_every": 1})
     calls = []
 
-    def empty_grid(model, part, pose, code, **kwargs) -> float:  # an estimate that marks every cell empty
-        grid = getattr(model, f"{part}_occupancy")
+    def empty_grid(layer: RadianceLayer, cond: object, **kwargs: object) -> float:  # an estimate that marks every cell empty
+        grid = layer.occupancy
         grid.density = torch.zeros_like(grid.density)
         grid.occupied = torch.zeros_like(grid.occupied)
-        calls.append(part)
+        calls.append(layer.name)
         return 0.0
 
-    monkeypatch.setattr("adnerf.train.update_occupancy", empty_grid)
+    monkeypatch.setattr(RadianceLayer, "update_occupancy", empty_grid)
     root = train(data, tmp_path / "run", config=cfg, progress=False)
     ckpt = torch.load(root / "checkpoint.pt", weights_only=False)
     assert (ckpt["head_step"], ckpt["torso_step"]) == (8, 4) and {"head", "torso"} <= set(calls)

@@ -16,7 +16,9 @@ from adnerf.data import load_dataset
 from adnerf.encodings import TriPlaneEncoding
 from adnerf.pose import HeadPose, euler_rotation
 from adnerf.synth import SynthConfig, synthesize
-from adnerf.talking_head import TalkingHead, layer_bounds, layer_occupancy, mixed_precision, model_config, render_frame, render_part, update_occupancy
+from adnerf.conditions import FrameCondition
+from adnerf.samplers import PosedAABBBounds
+from adnerf.talking_head import TalkingHead, migrate_state_dict, mixed_precision, model_config, render_frame
 from adnerf.train import RunError, TrainConfig, load_model_state, train
 
 TINY = SynthConfig(seconds=1.6, size=32, voice="formant", seed=5)
@@ -71,64 +73,78 @@ def test_triplane_matches_explicit_bilinear_reference() -> None:
 
 
 def _set_head_density_bias(model: TalkingHead, bias: float) -> None:
-    for field in (model.head, model.head_fine):
+    for field in (model.layers["head"].coarse, model.layers["head"].fine):
         with torch.no_grad():
-            field.field.density_head.weight.zero_()
-            field.field.density_head.bias.fill_(bias)
+            field.density_head.weight.zero_()
+            field.density_head.bias.fill_(bias)
 
 
 def test_empty_grid_skips_everything_and_full_grid_changes_nothing(tiny: Path) -> None:
     model, ds = _model(tiny)
     model.eval()
+    head = model.layers["head"]
     cam = ds.meta.camera()
     pose = ds.head_pose(0)
-    code = torch.randn(model.config.audio_dim)
+    cond = FrameCondition(torch.randn(model.config.audio_dim), pose)
     plate = torch.rand(cam.height, cam.width, 3)
-    assert layer_occupancy(model, "head", pose) is None  # not estimated yet: nothing is skipped
+    assert head.occupied() is None  # not estimated yet: nothing is skipped
     rays = cam.rays().flatten()
-    near, far = layer_bounds(model, "head", pose)(rays)
+    near, far = head.crossing(rays, pose)
     rays = rays[far > near]  # rays that cross the head box (zero-length samples are skipped anyway)
 
     _set_head_density_bias(model, 30.0)  # dense everywhere: every cell occupied
-    reference = render_part(model, "head", rays, pose, code)
-    assert update_occupancy(model, "head", pose, code) == 1.0
-    skipped = render_part(model, "head", rays, pose, code)
+    reference = head.render(rays, cond)
+    assert head.update_occupancy(cond) == 1.0
+    skipped = head.render(rays, cond)
     assert torch.equal(skipped.final.rgb, reference.final.rgb) and skipped.samples_evaluated == reference.samples_evaluated
 
     _set_head_density_bias(model, -30.0)  # softplus(-30) ~ 1e-13 < threshold: every cell empty
-    assert update_occupancy(model, "head", pose, code, decay=0.0) == 0.0
-    empty = render_part(model, "head", rays, pose, code)
+    assert head.update_occupancy(cond, decay=0.0) == 0.0
+    empty = head.render(rays, cond)
     assert empty.samples_evaluated == 0 and torch.equal(empty.final.opacity, torch.zeros_like(empty.final.opacity))
-    frame = render_frame(model, cam, pose, code, plate, torso=False)
+    frame = render_frame(model, cam, pose, cond.audio, plate, layers=("head",))
     assert torch.equal(frame.head_opacity, torch.zeros_like(frame.head_opacity))
     torch.testing.assert_close(frame.rgb, plate.clamp(0, 1))
 
 
-def test_head_grid_is_canonical_and_torso_grid_is_camera_space(tiny: Path) -> None:
+def test_head_layer_lives_in_canonical_space_and_torso_in_camera_space(tiny: Path) -> None:
+    """Rays are moved into the head's frame once: they cross its box where the posed box of the
+    reference bounds says, with the same ``t``, and pass canonical points where the camera rays
+    pass their posed images. The torso layer leaves rays as they are."""
     model, ds = _model(tiny)
-    grid = model.head_occupancy
-    grid.density = torch.rand(grid.density.shape)  # some estimate
-    grid.occupied = grid.density > 0.5
+    head, torso = model.layers["head"], model.layers["torso"]
     R = euler_rotation(0.3, -0.2, 0.1, like=torch.zeros((), dtype=torch.float64))
     pose = HeadPose(R, torch.tensor([0.1, -0.3, 6.0], dtype=torch.float64))
-    canonical = grid.cell_centers().reshape(-1, 3)
-    predicate = layer_occupancy(model, "head", pose)
-    assert torch.equal(predicate(pose.from_canonical(canonical)), grid.occupied.reshape(-1))
-    tgrid = model.torso_occupancy
-    tgrid.density = torch.rand(tgrid.density.shape)
-    tgrid.occupied = tgrid.density > 0.5
-    centres = tgrid.cell_centers().reshape(-1, 3)
-    assert torch.equal(layer_occupancy(model, "torso", pose)(centres), tgrid.occupied.reshape(-1))
+    rays = ds.meta.camera().rays().flatten()
+    lo, hi = (torch.tensor(v, dtype=torch.float64) for v in model.config.head_aabb)
+    ref_near, ref_far = PosedAABBBounds(lo, hi, pose.R, pose.t)(rays)
+    near, far = head.crossing(rays, pose)
+    hit = ref_far > ref_near
+    assert hit.any() and torch.equal(far > near, hit)
+    torch.testing.assert_close(near[hit], ref_near[hit], rtol=0, atol=1e-12)
+    torch.testing.assert_close(far[hit], ref_far[hit], rtol=0, atol=1e-12)
+    moved = head.to_space(rays, pose)
+    t = near[hit][:, None]
+    torch.testing.assert_close(moved.origins[hit] + t * moved.directions[hit], pose.to_canonical(rays.origins[hit] + t * rays.directions[hit]), rtol=0, atol=1e-12)
+    assert torso.to_space(rays, pose) is rays
+    with pytest.raises(ValueError, match="head pose"):
+        head.to_space(rays, None)
+    # The grids are looked up in each layer's space.
+    grid = head.occupancy
+    grid.density = torch.rand(grid.density.shape)  # some estimate
+    grid.occupied = grid.density > 0.5
+    assert torch.equal(head.occupied()(grid.cell_centers().reshape(-1, 3)), grid.occupied.reshape(-1))
 
 
 def test_occupancy_is_a_union_over_frames_with_decay(tiny: Path) -> None:
     model, ds = _model(tiny)
-    pose, code = ds.head_pose(0), torch.zeros(model.config.audio_dim)
+    head = model.layers["head"]
+    cond = FrameCondition(torch.zeros(model.config.audio_dim), ds.head_pose(0))
     _set_head_density_bias(model, 6.0)  # raw density 6 - 1 (the fast field's bias): softplus(5) = 5.0067
-    update_occupancy(model, "head", pose, code, dilation=0)
+    head.update_occupancy(cond, dilation=0)
     _set_head_density_bias(model, -30.0)
     # The old estimate decays by 0.7 per update: 5.0067 * 0.7^17 = 0.0116 > 0.01 > 5.0067 * 0.7^18.
-    fractions = [update_occupancy(model, "head", pose, code, dilation=0) for _ in range(19)]
+    fractions = [head.update_occupancy(cond, dilation=0) for _ in range(19)]
     assert fractions[:17] == [1.0] * 17 and fractions[-1] == 0.0
 
 
@@ -138,22 +154,44 @@ def test_training_skips_empty_space_and_counts_samples(tiny: Path, tmp_path: Pat
     rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert all(r["samples_per_s"] > 0 for r in rows)
     ckpt = torch.load(run / "checkpoint.pt", weights_only=False)
-    density = ckpt["model"]["head_occupancy.density"]
+    density = ckpt["model"]["layers.head.occupancy.density"]
     assert torch.isfinite(density).all()  # estimated during training
     off = train(tiny, tmp_path / "off", config=TrainConfig(**{**cfg.__dict__, "occupancy_start": 1.0}), progress=False)
-    assert torch.isinf(torch.load(off / "checkpoint.pt", weights_only=False)["model"]["head_occupancy.density"]).all()
+    assert torch.isinf(torch.load(off / "checkpoint.pt", weights_only=False)["model"]["layers.head.occupancy.density"]).all()
 
 
 def test_checkpoints_without_grids_load_and_wrong_weights_fail(tiny: Path) -> None:
     model, _ = _model(tiny)
-    state = {k: v for k, v in model.state_dict().items() if "_occupancy." not in k}
+    state = {k: v for k, v in model.state_dict().items() if ".occupancy." not in k}
     fresh, _ = _model(tiny)
     load_model_state(fresh, state, Path("old.pt"))  # a run from before the grids: they stay unestimated
-    assert not fresh.head_occupancy.estimated
+    assert not fresh.layers["head"].occupancy.estimated
     with pytest.raises(RunError, match="do not match"):
         load_model_state(fresh, {**state, "stray.weight": torch.zeros(1)}, Path("bad.pt"))
     with pytest.raises(RunError, match="do not match"):
-        load_model_state(fresh, {k: v for k, v in state.items() if not k.startswith("head.")}, Path("bad.pt"))
+        load_model_state(fresh, {k: v for k, v in state.items() if not k.startswith("layers.head.")}, Path("bad.pt"))
+
+
+def test_checkpoints_of_the_earlier_layout_load_bit_for_bit(tiny: Path) -> None:
+    """Runs trained before the layers (``head.field.*``, ``head_fine.field.*``, ``torso.*``,
+    ``head_occupancy.*``) load into the layers' model with every tensor in its place."""
+    model, _ = _model(tiny)
+    model.layers["head"].occupancy.density.uniform_(0, 1)
+    new = model.state_dict()
+    back = {"layers.head.coarse.": "head.field.", "layers.head.fine.": "head_fine.field.", "layers.torso.coarse.": "torso.field.", "layers.torso.fine.": "torso_fine.field.", "layers.head.occupancy.": "head_occupancy.", "layers.torso.occupancy.": "torso_occupancy."}
+    old = {}
+    for key, value in new.items():
+        prefix = next((p for p in back if key.startswith(p)), None)
+        old[key if prefix is None else back[prefix] + key[len(prefix) :]] = value
+    assert any(k.startswith("head_fine.field.") for k in old) and not any(k.startswith("layers.") for k in old)
+    assert migrate_state_dict(new) == new
+    fresh, _ = _model(tiny)
+    with torch.no_grad():
+        for p in fresh.parameters():
+            p.add_(1.0)  # so that only loading can bring the weights back
+    load_model_state(fresh, old, Path("old.pt"))
+    for key, value in fresh.state_dict().items():
+        assert torch.equal(value, new[key]), key
 
 
 def test_bench_model_configs(tiny: Path) -> None:
@@ -209,15 +247,17 @@ def test_bench_fields_cli_errors(capsys: pytest.CaptureFixture[str]) -> None:
 def test_bf16_autocast_runs_the_fields_in_bf16_and_composites_in_full_precision(tiny: Path, tmp_path: Path) -> None:
     model, ds = _model(tiny)
     model.eval()
+    head = model.layers["head"]
     pose, code = ds.head_pose(0), torch.randn(model.config.audio_dim)
+    cond = FrameCondition(code, pose)
     rays = ds.meta.camera().rays().flatten()
-    near, far = layer_bounds(model, "head", pose)(rays)
+    near, far = head.crossing(rays, pose)
     rays = rays[far > near]
     with torch.no_grad():
-        reference = render_part(model, "head", rays, pose, code)
+        reference = head.render(rays, cond)
         with mixed_precision("cpu", "bf16"):
-            raw = model.head(rays.origins + 6.0 * rays.directions, rays.directions, pose=pose, audio=code)
-            half = render_part(model, "head", rays, pose, code)
+            raw = head.coarse(torch.zeros(8, 3), torch.zeros(8, 3), code)
+            half = head.render(rays, cond)
     assert raw.density.dtype == torch.bfloat16  # the field really ran in bfloat16
     assert half.final.weights.dtype == reference.final.weights.dtype != torch.bfloat16
     assert torch.isfinite(half.final.rgb).all() and (half.final.rgb - reference.final.rgb).abs().max() < 0.05

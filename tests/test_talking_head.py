@@ -201,7 +201,7 @@ def test_render_takes_precomputed_feature_windows(tiny: Path, tiny_run: Path, tm
 
 
 def test_stage_two_backgrounds_are_the_head_render_where_torso_rays_are_drawn(tiny: Path, tiny_run: Path, tmp_path: Path) -> None:
-    from adnerf.talking_head import render_frame, torso_bounds
+    from adnerf.talking_head import render_frame
     from adnerf.train import _Trainer
 
     run = load_run(tiny_run)
@@ -209,14 +209,14 @@ def test_stage_two_backgrounds_are_the_head_render_where_torso_rays_are_drawn(ti
     tr = _Trainer(tmp_path, ds, run.model.config, run.train_config, "cpu", progress=False)
     tr.model.load_state_dict(run.model.state_dict())
     tr.head_step = run.train_config.head_iters
-    near, far = torso_bounds(tr.model.config, tr.rays.origins)(tr.rays)
+    near, far = tr.model.layers["torso"].crossing(tr.rays)
     in_box = far > near
     assert 0 < in_box.float().mean() < 1
     out = tr.head_renders(in_box)
     codes = tr.model.all_codes(tr.windows, tr.smooth_audio)
     plate = tr.plate.reshape(ds.meta.height, ds.meta.width, 3)
     for f in ds.meta.train[:: max(1, len(ds.meta.train) // 4)]:
-        ref = render_frame(tr.model, tr.camera, ds.head_pose(f), codes[f], plate, torso=False).head_on_plate.reshape(-1, 3)
+        ref = render_frame(tr.model, tr.camera, ds.head_pose(f), codes[f], plate, layers=("head",)).rgb.reshape(-1, 3)
         need = in_box | tr.is_torso[f]
         torch.testing.assert_close(out[f, need], ref[need], rtol=0, atol=0)
         torch.testing.assert_close(out[f, ~need], tr.plate[~need], rtol=0, atol=0)

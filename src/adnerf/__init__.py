@@ -2,14 +2,19 @@
 
 The flow of data is the flow of the modules::
 
-    cameras -> RayBundle -> samplers -> RaySamples -> fields (in canonical space via pose)
-            -> compositor -> pixels                 (composed by renderer.VolumeRenderer)
+    cameras -> RayBundle -> samplers -> RaySamples -> fields -> compositor -> pixels
+                                                    (composed by renderer.VolumeRenderer)
+
+and a talking head is a stack of layers.RadianceLayer (each: its space, box, samples, occupancy
+grid, fields and the conditions.FrameCondition signals it reads) composited over a plate.
 """
 
 from .cameras import Camera, intrinsics_matrix, pixel_rays, rays_through_pixels
 from .compositor import Composite, Layer, composite, composite_layers, over, render_weights
+from .conditions import FrameCondition
 from .encodings import PositionalEncoding, TriPlaneEncoding
 from .fields import FieldConfig, FieldOutput, HeadField, RadianceField, TorsoField, fast_config, paper_config
+from .layers import RadianceLayer
 from .occupancy import OccupancyGrid
 from .pose import HeadPose, from_canonical, perturb_pose, to_canonical
 from .rays import RayBundle, RaySamples
@@ -33,6 +38,7 @@ __all__ = [
     "Composite",
     "FieldConfig",
     "FieldOutput",
+    "FrameCondition",
     "HeadField",
     "HeadPose",
     "ImportanceSampler",
@@ -41,6 +47,7 @@ __all__ = [
     "OccupancyGrid",
     "PositionalEncoding",
     "RadianceField",
+    "RadianceLayer",
     "RayBundle",
     "RaySamples",
     "RenderOutput",

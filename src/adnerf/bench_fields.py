@@ -34,7 +34,8 @@ from .allocator import tune_allocator
 from .data import SceneMeta, load_dataset
 from .synth import SynthConfig, synthesize
 from .metrics import psnr_from_mse
-from .talking_head import ModelConfig, layer_bounds, model_config, render_frame, render_part
+from .conditions import FrameCondition
+from .talking_head import ModelConfig, model_config, render_frame
 from .train import TrainConfig, _Trainer
 
 __all__ = [
@@ -104,7 +105,7 @@ def _eval_set(tr: _Trainer, generator: torch.Generator) -> list[tuple[int, torch
     picks = [test[round(i * (len(test) - 1) / max(EVAL_FRAMES - 1, 1))] for i in range(min(EVAL_FRAMES, len(test)))]
     out = []
     for frame in dict.fromkeys(picks):
-        near, far = layer_bounds(tr.model, "head", tr.ds.head_pose(frame, device=tr.device))(tr.rays)
+        near, far = tr.model.layers["head"].crossing(tr.rays, tr.ds.head_pose(frame, device=tr.device))
         candidates = torch.nonzero(far > near)[:, 0]
         if candidates.numel() == 0:
             continue
@@ -122,7 +123,7 @@ def _eval_psnr(tr: _Trainer, evalset: list[tuple[int, torch.Tensor]]) -> float:
     for frame, pix in evalset:
         pose = tr.ds.head_pose(frame, device=tr.device)
         code = model.frame_code(tr.windows, frame, tr.smooth_audio)
-        out = render_part(model, "head", tr.rays[pix], pose, code, background=tr.plate[pix])
+        out = model.layers["head"].render(tr.rays[pix], FrameCondition(code, pose), background=tr.plate[pix])
         target = tr.head_target(frame, pix)
         se += float((out.final.rgb.float().clamp(0, 1) - target).square().sum())
         n += target.numel()
@@ -190,11 +191,11 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
         plate = tr.plate.reshape(tr.camera.height, tr.camera.width, 3)
         frames = [f for f, _ in evalset] or ds.meta.train[:1]
         codes = {f: model.frame_code(tr.windows, f, tr.smooth_audio).detach() for f in frames}
-        render_frame(model, tr.camera, ds.head_pose(frames[0], device=device), codes[frames[0]], plate, torso=False)
+        render_frame(model, tr.camera, ds.head_pose(frames[0], device=device), codes[frames[0]], plate, layers=("head",))
         n_frames, start = 0, time.perf_counter()
         while n_frames < 24 and (n_frames == 0 or time.perf_counter() - start < 10):
             f = frames[n_frames % len(frames)]
-            render_frame(model, tr.camera, ds.head_pose(f, device=device), codes[f], plate, torso=False)
+            render_frame(model, tr.camera, ds.head_pose(f, device=device), codes[f], plate, layers=("head",))
             _sync(device)
             n_frames += 1
         render_fps = n_frames / (time.perf_counter() - start)

@@ -181,7 +181,7 @@ def render_frames(
     angles = [math.radians(a) for a in (yaw, pitch, roll)]
     for i in range(n):
         pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev)).perturbed(*angles)
-        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, torso=run.has_torso, amp=run.train_config.amp)
+        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, layers=run.trained_layers, amp=run.train_config.amp)
         frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
         head_op[i] = out.head_opacity.cpu().numpy()
         torso_op[i] = out.torso_opacity.cpu().numpy()

@@ -20,7 +20,7 @@ import torch
 
 from .atomic import atomic_path
 from .data import TalkingHeadDataset
-from .talking_head import ModelConfig, TalkingHead
+from .talking_head import ModelConfig, TalkingHead, migrate_state_dict
 from .train_config import TrainConfig
 
 __all__ = ["RESUMABLE", "RUN_FORMAT", "RUN_VERSION", "Run", "RunError", "load_run", "resumed_config", "stored_config", "write_run"]
@@ -100,6 +100,11 @@ class Run:
         """Whether stage 2 ran at all."""
         return self.torso_step > 0
 
+    @property
+    def trained_layers(self) -> tuple[str, ...]:
+        """The layers training has reached: all of them once stage 2 ran, else the head's."""
+        return tuple(self.model.layers) if self.has_torso else ("head",)
+
 
 def read_run_doc(root: Path) -> dict:
     """``run.json`` of a run folder, checked for format and version."""
@@ -169,9 +174,10 @@ def check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, r
 
 
 def load_model_state(model: TalkingHead, state: dict, path: Path) -> None:
-    """Load weights; a checkpoint from before occupancy grids existed leaves them unestimated."""
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    missing = [k for k in missing if not k.split(".")[0].endswith("_occupancy")]
+    """Load weights, of the layers' layout or the earlier one (:func:`~adnerf.talking_head.migrate_state_dict`);
+    a checkpoint from before occupancy grids existed leaves them unestimated."""
+    missing, unexpected = model.load_state_dict(migrate_state_dict(state), strict=False)
+    missing = [k for k in missing if ".occupancy." not in k]
     if missing or unexpected:
         raise RunError(f"{path}: weights do not match the run's model (missing {missing[:3]}, unexpected {unexpected[:3]})")
 

@@ -1,51 +1,52 @@
-"""The talking-head model: audio encoders, head and torso fields, and how a frame is put together.
+"""The talking-head model: audio encoders and a stack of radiance layers over a plate.
 
-A frame is composed as in AD-NeRF: the head field (canonical space, warped by the head pose,
-conditioned on the audio code) is rendered over the background plate; the torso field (camera
-space, conditioned on the audio code and the head pose) is rendered over that result::
+AD-NeRF's model is two :class:`~adnerf.layers.RadianceLayer` s, back to front:
 
-    head_on_plate = head.rgb + (1 - head.opacity) * plate
-    frame         = torso.rgb + (1 - torso.opacity) * head_on_plate
+- ``head``: canonical space (camera rays are moved into the head's frame by the frame's pose),
+  conditioned on the audio code;
+- ``torso``: camera space, conditioned on the audio code and the head pose.
 
-Rays are sampled only inside the head box (moved with the head pose) and the torso box; rays that
-miss a box get that layer's opacity 0 without evaluating anything.
+A frame is the layers composited front to back over the background plate
+(:func:`~adnerf.compositor.composite_layers`), which for these two is AD-NeRF's::
+
+    frame = torso.rgb + (1 - torso.opacity) * (head.rgb + (1 - head.opacity) * plate)
+
+Each layer samples only inside its box; rays that miss it get its opacity 0 without evaluating
+anything. Adding a layer is adding it to :attr:`TalkingHead.layers` (in its place in the stack);
+nothing here switches on layer names.
 """
 
 from __future__ import annotations
 
 import contextlib
 from dataclasses import asdict, dataclass
-from typing import Callable, Literal
+from typing import Literal, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from .audio import AudioAttNet, AudioNet
 from .cameras import Camera
-from .compositor import Composite
+from .compositor import Layer, composite_layers
+from .conditions import FrameCondition, signal_width
 from .data import SceneMeta
-from .fields import POSE_CODE_DIM, FieldConfig, check_config_keys, HeadField, TorsoField, fast_config, paper_config
-from .occupancy import OccupancyGrid
+from .fields import POSE_CODE_DIM, FieldConfig, RadianceField, check_config_keys, fast_config, paper_config
+from .layers import RadianceLayer
 from .pose import HeadPose
 from .rays import RayBundle
-from .renderer import RenderOutput, VolumeRenderer
-from .samplers import AABBBounds, Bounds, PosedAABBBounds
 
 __all__ = [
     "FrameRender",
     "ModelConfig",
     "TalkingHead",
-    "layer_bounds",
-    "layer_occupancy",
+    "migrate_state_dict",
     "mixed_precision",
     "model_config",
     "render_frame",
     "render_chunk",
-    "render_part",
-    "update_occupancy",
+    "render_on_plate",
 ]
 
-Part = Literal["head", "torso"]
 AMP_MODES = ("auto", "bf16", "off")
 
 
@@ -171,8 +172,25 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
     )
 
 
+def _layer(config: ModelConfig, name: str, coarse: FieldConfig, fine: FieldConfig, aabb: tuple, samples: tuple[int, int], space: str, conditions: tuple[str, ...]) -> RadianceLayer:
+    """A layer of coarse and fine radiance fields, checked against the width of its conditions."""
+    width = sum(signal_width(c, config.audio_dim) for c in conditions)
+    for which, field_config in (("coarse", coarse), ("fine", fine)):
+        if field_config.cond_dim != width:
+            raise ValueError(f"the {name} layer's {which} field takes {field_config.cond_dim} condition values; its conditions {conditions} are {width} wide")
+    return RadianceLayer(
+        name, RadianceField(coarse), RadianceField(fine), aabb, samples, space=space, conditions=conditions,
+        occupancy_resolution=config.occupancy_resolution, occupancy_threshold=config.occupancy_threshold,
+    )  # fmt: skip
+
+
 class TalkingHead(nn.Module):
-    """Audio encoders plus coarse/fine head and torso fields.
+    """Audio encoders plus a stack of radiance layers (AD-NeRF's head and torso).
+
+    Attributes:
+        layers: The layers back to front (drawn in this order over the plate): ``"head"``
+            (canonical space; audio) then ``"torso"`` (camera space; audio and head pose).
+            Another layer is one more entry, in its place in the stack.
 
     Args:
         config: The architecture.
@@ -183,20 +201,15 @@ class TalkingHead(nn.Module):
         self.config = config
         self.audio_net = AudioNet(config.feature_dim, config.audio_dim)
         self.att_net = AudioAttNet(config.audio_dim, config.att_len, config.att_centre_logit)
-        self.head = HeadField(config.head)
-        self.head_fine = HeadField(config.head_fine)
-        self.torso = TorsoField(config.torso, config.audio_dim)
-        self.torso_fine = TorsoField(config.torso_fine, config.audio_dim)
+        self.layers = nn.ModuleDict(
+            {
+                "head": _layer(config, "head", config.head, config.head_fine, config.head_aabb, config.head_samples, "canonical", ("audio",)),
+                "torso": _layer(config, "torso", config.torso, config.torso_fine, config.torso_aabb, config.torso_samples, "camera", ("audio", "pose")),
+            }
+        )
         # Per-feature standardisation of the audio windows, fitted on the training frames.
         self.register_buffer("feature_mean", torch.zeros(config.feature_dim))
         self.register_buffer("feature_std", torch.ones(config.feature_dim))
-        # Empty-space skipping: until its first update a grid is "all occupied" and not used.
-        self.head_occupancy: OccupancyGrid | None = None
-        self.torso_occupancy: OccupancyGrid | None = None
-        if config.occupancy_resolution > 0:
-            res, thr = config.occupancy_resolution, config.occupancy_threshold
-            self.head_occupancy = OccupancyGrid(*config.head_aabb, resolution=res, threshold=thr)
-            self.torso_occupancy = OccupancyGrid(*config.torso_aabb, resolution=res, threshold=thr)
 
     def fit_feature_scale(self, windows: Tensor) -> None:
         """Set the standardisation from training windows ``(N, 16, D)`` (a zero std is left at 1)."""
@@ -239,143 +252,21 @@ class TalkingHead(nn.Module):
         return torch.stack([self.smoothed_code(raw, i) for i in range(raw.shape[0])])
 
 
-def _box(aabb: tuple[tuple[float, ...], tuple[float, ...]], like: Tensor) -> tuple[Tensor, Tensor]:
-    return torch.tensor(aabb[0], dtype=like.dtype, device=like.device), torch.tensor(aabb[1], dtype=like.dtype, device=like.device)
-
-
-def head_bounds(config: ModelConfig, pose: HeadPose) -> PosedAABBBounds:
-    """Per-ray bounds of the head box moved by ``pose``."""
-    lo, hi = _box(config.head_aabb, pose.R)
-    return PosedAABBBounds(lo, hi, pose.R, pose.t)
-
-
-def torso_bounds(config: ModelConfig, like: Tensor) -> AABBBounds:
-    """Per-ray bounds of the torso box (camera space)."""
-    lo, hi = _box(config.torso_aabb, like)
-    return AABBBounds(lo, hi)
-
-
-def layer_bounds(model: TalkingHead, part: Part, pose: HeadPose) -> Bounds:
-    """The sampling bounds of a layer: the head box moved by ``pose``, or the torso box."""
-    if part == "head":
-        return head_bounds(model.config, pose)
-    if part == "torso":
-        return torso_bounds(model.config, pose.t)
-    raise ValueError(f"part must be head or torso; got {part!r}")
-
-
-def _layer_fields(model: TalkingHead, part: Part) -> tuple[nn.Module, nn.Module]:
-    """The coarse and fine fields of a layer."""
-    if part == "head":
-        return model.head, model.head_fine
-    if part == "torso":
-        return model.torso, model.torso_fine
-    raise ValueError(f"part must be head or torso; got {part!r}")
-
-
-def _layer_grid(model: TalkingHead, part: Part) -> OccupancyGrid | None:
-    """The occupancy grid of a layer (``None`` when the model has none)."""
-    return model.head_occupancy if part == "head" else model.torso_occupancy
-
-
-def layer_occupancy(model: TalkingHead, part: Part, pose: HeadPose) -> Callable[[Tensor], Tensor] | None:
-    """The empty-space predicate of a layer on camera-space points ``(..., 3) -> bool (...)``.
-
-    ``None`` (evaluate every sample) when the model has no grids or the layer's grid has not been
-    estimated yet. The head's grid lives in canonical space, so points are moved by ``pose``
-    first; the torso's lives in camera space.
-    """
-    grid = _layer_grid(model, part)
-    if grid is None or not grid.estimated:
-        return None
-    if part == "head":
-        return lambda points: grid.is_occupied(pose.to_canonical(points.to(pose.R)))
-    return grid.is_occupied
-
-
-@torch.no_grad()
-def update_occupancy(
-    model: TalkingHead,
-    part: Part,
-    pose: HeadPose,
-    code: Tensor,
-    *,
-    decay: float = 0.7,
-    dilation: int = 1,
-    generator: torch.Generator | None = None,
-) -> float:
-    """Re-estimate a layer's occupancy grid from its coarse and fine fields under one frame's condition.
-
-    Each cell keeps ``max(decay * old, density)``, the density being the larger of the two
-    fields' at a random point of the cell, so over many frames the grid holds the union of what
-    the conditions (mouth shapes, poses) occupy; the occupied region is then grown by
-    ``dilation`` cells, a margin for how the field changes until the next update.
-
-    Args:
-        model: The model (it must have grids).
-        part: ``"head"`` (canonical points, conditioned on ``code``) or ``"torso"`` (camera
-            points, conditioned on ``code`` and ``pose``).
-        pose: The frame's head pose.
-        code: The frame's audio code ``(audio_dim,)``.
-        decay: Weight of the previous estimate, in ``[0, 1]``.
-        dilation: Cells of margin.
-        generator: Random generator of the points in the cells.
-
-    Returns:
-        The occupied fraction of the cells (after dilation).
-    """
-    grid = _layer_grid(model, part)
-    if grid is None:
-        raise ValueError("this model has no occupancy grids (occupancy_resolution = 0)")
-    coarse, fine = _layer_fields(model, part)
-    # The head's grid is canonical: its fields are evaluated with the identity pose there.
-    at = HeadPose.identity(dtype=pose.R.dtype, device=pose.R.device) if part == "head" else pose
-
-    def density(points: Tensor) -> Tensor:
-        dirs = torch.zeros_like(points)
-        dirs[:, 2] = 1.0  # density does not depend on the view direction; paper fields want one
-        return torch.maximum(coarse(points, dirs, pose=at, audio=code).density, fine(points, dirs, pose=at, audio=code).density)
-
-    grid.update(density, decay=decay, generator=generator)
-    grid.dilate(dilation)
-    return grid.occupied.float().mean().item()
-
-
-def _layer_renderer(model: TalkingHead, part: Part, pose: HeadPose) -> tuple[VolumeRenderer, nn.Module, nn.Module]:
-    """The renderer (bounds and sample counts) and the coarse and fine fields of a layer."""
-    samples = model.config.head_samples if part == "head" else model.config.torso_samples
-    return VolumeRenderer(layer_bounds(model, part, pose), *samples), *_layer_fields(model, part)
-
-
-def render_part(
-    model: TalkingHead,
-    part: Part,
-    rays: RayBundle,
-    pose: HeadPose,
-    code: Tensor,
-    *,
-    background: Tensor | None = None,
-    jitter: bool = False,
-    generator: torch.Generator | None = None,
-) -> RenderOutput:
-    """Render the head or the torso layer along rays ``(R,)`` for one frame.
-
-    Args:
-        model: The model.
-        part: ``"head"`` (canonical space, warped by ``pose``) or ``"torso"`` (camera space,
-            ``pose`` as input).
-        rays: Camera-space rays ``(R,)``.
-        pose: The frame's head pose.
-        code: The frame's audio code ``(audio_dim,)``.
-        background: Colour behind the layer ``(R, 3)``; ``None`` gives premultiplied colour.
-        jitter: Random samples (training).
-        generator: Random generator for the samples.
-    """
-    renderer, coarse, fine = _layer_renderer(model, part, pose)
-    occupancy = layer_occupancy(model, part, pose)
-    return renderer.render_rays(
-        rays, coarse, fine, background=background, occupancy=occupancy, jitter=jitter, generator=generator, pose=pose, audio=code
-    )
+def migrate_state_dict(state: dict) -> dict:
+    """A model state dict of the earlier layout (``head.field.*``, ``head_fine.field.*``, ...,
+    ``head_occupancy.*``) in the layers' layout (``layers.head.coarse.*``, ``layers.head.fine.*``,
+    ..., ``layers.head.occupancy.*``); a state dict of the current layout comes back unchanged."""
+    renames = []
+    for layer in ("head", "torso"):
+        renames += [(f"{layer}.field.", f"layers.{layer}.coarse."), (f"{layer}_fine.field.", f"layers.{layer}.fine."), (f"{layer}_occupancy.", f"layers.{layer}.occupancy.")]
+    out = {}
+    for key, value in state.items():
+        for old, new in renames:
+            if key.startswith(old):
+                key = new + key[len(old) :]
+                break
+        out[key] = value
+    return out
 
 
 @dataclass
@@ -384,17 +275,24 @@ class FrameRender:
 
     Attributes:
         rgb: Final colour ``(H, W, 3)`` in ``[0, 1]``.
-        head_opacity: Head opacity ``(H, W)``.
-        torso_opacity: Torso opacity ``(H, W)``.
-        head_on_plate: The head rendered over the plate ``(H, W, 3)`` (the torso's background).
-        head_depth: Head depth along the unit pixel ray ``(H, W)`` (far bound where opacity 0).
+        opacity: Each rendered layer's opacity ``(H, W)``, by name (0 where a ray misses it).
+        depth: Each rendered layer's depth along the unit pixel ray ``(H, W)``, float64 (0 where
+            the ray misses it; the end of its last interval where its opacity is 0).
     """
 
     rgb: Tensor
-    head_opacity: Tensor
-    torso_opacity: Tensor
-    head_on_plate: Tensor
-    head_depth: Tensor
+    opacity: dict[str, Tensor]
+    depth: dict[str, Tensor]
+
+    @property
+    def head_opacity(self) -> Tensor:
+        """The head layer's opacity ``(H, W)``."""
+        return self.opacity["head"]
+
+    @property
+    def torso_opacity(self) -> Tensor:
+        """The torso layer's opacity ``(H, W)`` (zeros when it was not rendered)."""
+        return self.opacity.get("torso", torch.zeros_like(self.opacity["head"]))
 
 
 def render_chunk(device: torch.device | str) -> int:
@@ -405,52 +303,66 @@ def render_chunk(device: torch.device | str) -> int:
     return 1024 if torch.device(device).type == "cpu" else 262144
 
 
-def _render_hits(model: TalkingHead, part: Part, rays: RayBundle, pose: HeadPose, code: Tensor, chunk: int | None) -> tuple[Tensor, Composite | None]:
-    """Render a layer along only the rays ``(R,)`` that cross its box; returns their mask and composite."""
-    renderer, coarse, fine = _layer_renderer(model, part, pose)
-    near, far = renderer.coarse_sampler.bounds(rays)
-    hit = far > near
-    if not bool(hit.any()):
-        return hit, None
-    occupancy = layer_occupancy(model, part, pose)
-    chunk = chunk or render_chunk(rays.origins.device)
-    return hit, renderer.render_chunked(rays[hit], coarse, fine, chunk=chunk, occupancy=occupancy, pose=pose, audio=code).final
+def _stack(model: TalkingHead, names: Sequence[str] | None) -> list[RadianceLayer]:
+    """The model's layers named in ``names`` (all when ``None``), back to front."""
+    if names is None:
+        return list(model.layers.values())
+    unknown = [n for n in names if n not in model.layers]
+    if unknown:
+        raise ValueError(f"the model has no layer {unknown[0]!r}; it has {', '.join(model.layers)}")
+    return [layer for name, layer in model.layers.items() if name in names]
+
+
+def _render_layers(model: TalkingHead, rays: RayBundle, cond: FrameCondition, names: Sequence[str] | None, chunk: int | None, amp: str, n: int, dev: torch.device) -> dict[str, tuple[Layer, Tensor]]:
+    """Each layer's premultiplied colour and opacity (a :class:`~adnerf.compositor.Layer`) and
+    depth along ``n`` rays, by name, back to front."""
+    chunk = chunk or render_chunk(dev)
+    out = {}
+    for layer in _stack(model, names):
+        rgb = torch.zeros(n, 3, device=dev)
+        opacity = torch.zeros(n, device=dev)
+        depth = torch.zeros(n, device=dev, dtype=torch.float64)
+        with mixed_precision(dev, amp):
+            hit, comp = layer.render_hits(rays, cond, chunk)
+        if comp is not None:
+            rgb[hit] = comp.rgb.to(rgb)
+            opacity[hit] = comp.opacity.to(opacity)
+            depth[hit] = comp.depth.to(depth)
+        out[layer.name] = (Layer(rgb, opacity), depth)
+    return out
 
 
 @torch.no_grad()
-def render_head_on_plate(
+def render_on_plate(
     model: TalkingHead,
     rays: RayBundle,
-    pose: HeadPose,
-    code: Tensor,
+    cond: FrameCondition,
     plate: Tensor,
     *,
+    layers: Sequence[str] | None = None,
     chunk: int | None = None,
     amp: str = "auto",
 ) -> Tensor:
-    """The head layer over the plate along some rays (no gradients): ``head + (1 - a_head) plate``.
+    """Some of the model's layers over the plate along some rays (no gradients).
 
-    The same values as :func:`render_frame`'s ``head_on_plate`` at those pixels, for callers that
-    need only part of a frame (stage 2 needs the head only where torso rays are drawn).
+    The same values as :func:`render_frame` at those pixels, for callers that need only part of a
+    frame (stage 2 trains the torso against the head over the plate where its rays are drawn).
 
     Args:
         model: The trained model.
         rays: Camera rays ``(R,)``.
-        pose: The frame's head pose.
-        code: The frame's audio code ``(audio_dim,)``.
+        cond: The frame's condition.
         plate: Plate colours of those pixels ``(R, 3)`` in ``[0, 1]``.
+        layers: Names of the layers to draw (all when ``None``), in the model's order.
         chunk: Rays per batch (default :func:`render_chunk` of the device).
         amp: Mixed precision of the fields (see :func:`mixed_precision`).
 
     Returns:
         ``(R, 3)`` float32 colours.
     """
-    out = plate.to(torch.float32).clone()
-    with mixed_precision(out.device, amp):
-        hit, comp = _render_hits(model, "head", rays, pose, code, chunk)
-    if comp is not None:
-        out[hit] = comp.rgb.to(out) + (1 - comp.opacity.to(out))[:, None] * out[hit]
-    return out
+    plate = plate.to(torch.float32)
+    drawn = _render_layers(model, rays, cond, layers, chunk, amp, plate.shape[0], plate.device)
+    return composite_layers([layer for layer, _ in reversed(drawn.values())], plate).rgb
 
 
 @torch.no_grad()
@@ -461,11 +373,11 @@ def render_frame(
     code: Tensor,
     plate: Tensor,
     *,
-    torso: bool = True,
+    layers: Sequence[str] | None = None,
     chunk: int | None = None,
     amp: str = "auto",
 ) -> FrameRender:
-    """Render a full frame (no gradients).
+    """Render a full frame (no gradients): the layers composited front to back over the plate.
 
     Args:
         model: The trained model.
@@ -473,39 +385,17 @@ def render_frame(
         pose: The frame's head pose (single ``R (3, 3)``, ``t (3,)``).
         code: The frame's audio code ``(audio_dim,)``.
         plate: Background ``(H, W, 3)`` in ``[0, 1]``.
-        torso: Also render the torso layer (off: the head-only stage-1 picture).
+        layers: Names of the layers to draw (all when ``None``; ``("head",)``: the stage-1
+            picture), in the model's order.
         chunk: Rays per batch (default :func:`render_chunk` of the device).
         amp: Mixed precision of the fields (see :func:`mixed_precision`; default: bfloat16 on CUDA).
     """
     H, W = camera.height, camera.width
-    rays = camera.rays().flatten()
     plate_flat = plate.reshape(-1, 3).to(torch.float32)
-    n = H * W
-    dev = plate_flat.device
-    head_rgb = torch.zeros(n, 3, device=dev)
-    head_opacity = torch.zeros(n, device=dev)
-    head_depth = torch.zeros(n, device=dev, dtype=torch.float64)
-
-    with mixed_precision(dev, amp):
-        hit, comp = _render_hits(model, "head", rays, pose, code, chunk)
-    if comp is not None:
-        head_rgb[hit] = comp.rgb.to(head_rgb)
-        head_opacity[hit] = comp.opacity.to(head_opacity)
-        head_depth[hit] = comp.depth.to(head_depth)
-    head_on_plate = head_rgb + (1 - head_opacity)[:, None] * plate_flat
-    torso_rgb = torch.zeros(n, 3, device=dev)
-    torso_opacity = torch.zeros(n, device=dev)
-    if torso:
-        with mixed_precision(dev, amp):
-            hit, comp = _render_hits(model, "torso", rays, pose, code, chunk)
-        if comp is not None:
-            torso_rgb[hit] = comp.rgb.to(torso_rgb)
-            torso_opacity[hit] = comp.opacity.to(torso_opacity)
-    rgb = torso_rgb + (1 - torso_opacity)[:, None] * head_on_plate
+    drawn = _render_layers(model, camera.rays().flatten(), FrameCondition(code, pose), layers, chunk, amp, H * W, plate_flat.device)
+    rgb = composite_layers([layer for layer, _ in reversed(drawn.values())], plate_flat).rgb
     return FrameRender(
         rgb=rgb.reshape(H, W, 3).clamp(0, 1),
-        head_opacity=head_opacity.reshape(H, W),
-        torso_opacity=torso_opacity.reshape(H, W),
-        head_on_plate=head_on_plate.reshape(H, W, 3),
-        head_depth=head_depth.reshape(H, W),
+        opacity={name: layer.opacity.reshape(H, W) for name, (layer, _) in drawn.items()},
+        depth={name: depth.reshape(H, W) for name, (_, depth) in drawn.items()},
     )

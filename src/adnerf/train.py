@@ -37,17 +37,8 @@ from .renderer import RenderOutput
 from .metrics import psnr_from_mse
 from .run_folder import RESUMABLE, Run, RunError, check_same_dataset, load_model_state, load_run, read_checkpoint, read_run_doc, resumed_config, save_atomic, stored_config, write_run
 from .train_config import TrainConfig
-from .talking_head import (
-    ModelConfig,
-    TalkingHead,
-    layer_bounds,
-    mixed_precision,
-    model_config,
-    render_head_on_plate,
-    render_part,
-    torso_bounds,
-    update_occupancy,
-)
+from .conditions import FrameCondition
+from .talking_head import ModelConfig, TalkingHead, mixed_precision, model_config, render_on_plate
 
 # The run folder and the schedule live in their own modules; re-exported for existing imports.
 __all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "load_run", "resumed_config", "stored_config", "train"]
@@ -105,12 +96,12 @@ class _Trainer:
         m.fit_feature_scale(self.windows[self.train_frames])
         self.opt_head = torch.optim.Adam(
             [
-                {"params": list(m.head.parameters()) + list(m.head_fine.parameters()), "lr": tcfg.lr},
+                {"params": list(m.layers["head"].parameters()), "lr": tcfg.lr},
                 {"params": list(m.audio_net.parameters()) + list(m.att_net.parameters()), "lr": tcfg.lr_audio},
             ],
             betas=(0.9, 0.99),
         )
-        self.opt_torso = torch.optim.Adam(list(m.torso.parameters()) + list(m.torso_fine.parameters()), lr=tcfg.lr, betas=(0.9, 0.99))
+        self.opt_torso = torch.optim.Adam(list(m.layers["torso"].parameters()), lr=tcfg.lr, betas=(0.9, 0.99))
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.head_step = self.torso_step = 0
         self.elapsed = {"head": 0.0, "torso": 0.0}
@@ -198,12 +189,12 @@ class _Trainer:
         """Stage-1 target colours ``(R, 3)`` of pixels ``pix``: the frame on head pixels, the plate elsewhere."""
         return torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
 
-    def maybe_update_occupancy(self, part: str, step: int, iters: int, pose, code: torch.Tensor) -> None:
+    def maybe_update_occupancy(self, layer: str, step: int, iters: int, cond: FrameCondition) -> None:
         """Every ``occupancy_every`` iterations from ``occupancy_start``, re-estimate the layer's grid."""
-        if self.model.config.occupancy_resolution <= 0 or step < self.tcfg.occupancy_start * iters:
+        if self.model.layers[layer].occupancy is None or step < self.tcfg.occupancy_start * iters:
             return
         if step % self.tcfg.occupancy_every == 0:
-            update_occupancy(self.model, part, pose, code.detach(), generator=self.generator)  # type: ignore[arg-type]
+            self.model.layers[layer].update_occupancy(FrameCondition(cond.audio.detach(), cond.pose), generator=self.generator)
 
     # ---- stages
     def _loop(self, stage: str, iters: int, step_fn: Callable[[int], tuple[float, float]], max_steps: int | None) -> None:
@@ -248,17 +239,17 @@ class _Trainer:
             sched.set(step)
             frame = self.pick_frame()
             pose = self.ds.head_pose(frame, device=self.device)
-            near, far = layer_bounds(self.model, "head", pose)(self.rays)
+            near, far = self.model.layers["head"].crossing(self.rays, pose)
             candidates = torch.nonzero(far > near)[:, 0]
             mouth = self.mouth_pixels(pose)
             n_mouth = int(round(tcfg.mouth_rays * tcfg.rays)) if mouth.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
             pix = self.ranks.part(pix)  # every process drew the same batch; it renders its part
             target = self.head_target(frame, pix)
-            code = self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters)
-            self.maybe_update_occupancy("head", step, tcfg.head_iters, pose, code)
+            cond = FrameCondition(self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters), pose)
+            self.maybe_update_occupancy("head", step, tcfg.head_iters, cond)
             with mixed_precision(self.device, tcfg.amp):
-                out = render_part(self.model, "head", self.rays[pix], pose, code, background=self.plate[pix], jitter=True, generator=self.ranks.shard(self.generator))
+                out = self.model.layers["head"].render(self.rays[pix], cond, background=self.plate[pix], jitter=True, generator=self.ranks.shard(self.generator))
             self.samples += out.samples_evaluated
             return _optimise(out, target, self.is_head[frame, pix], tcfg.mask_weight, self.opt_head, self.ranks)
 
@@ -283,7 +274,7 @@ class _Trainer:
         for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
             pix = torch.nonzero(in_box | self.is_torso[frame])[:, 0]
             pose = self.ds.head_pose(frame, device=self.device)
-            out[frame, pix] = render_head_on_plate(self.model, self.rays[pix], pose, codes[frame], self.plate[pix], amp=self.tcfg.amp)
+            out[frame, pix] = render_on_plate(self.model, self.rays[pix], FrameCondition(codes[frame], pose), self.plate[pix], layers=("head",), amp=self.tcfg.amp)
         if self.ranks.main:
             save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
         return out
@@ -292,7 +283,7 @@ class _Trainer:
         tcfg = self.tcfg
         if self.head_step < tcfg.head_iters:
             raise RunError(f"stage 2 needs a finished stage 1 ({self.head_step}/{tcfg.head_iters} head iterations); run --stage head first")
-        near, far = torso_bounds(self.model.config, self.rays.origins)(self.rays)
+        near, far = self.model.layers["torso"].crossing(self.rays)
         backgrounds = self.head_renders(far > near)
         with torch.no_grad():
             codes = self.model.all_codes(self.windows, self.smooth_audio)
@@ -309,9 +300,10 @@ class _Trainer:
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
             pix = self.ranks.part(pix)
             target = self.frames[frame, pix]
-            self.maybe_update_occupancy("torso", step, tcfg.torso_iters, pose, codes[frame])
+            cond = FrameCondition(codes[frame], pose)
+            self.maybe_update_occupancy("torso", step, tcfg.torso_iters, cond)
             with mixed_precision(self.device, tcfg.amp):
-                out = render_part(self.model, "torso", self.rays[pix], pose, codes[frame], background=backgrounds[frame, pix], jitter=True, generator=self.ranks.shard(self.generator))
+                out = self.model.layers["torso"].render(self.rays[pix], cond, background=backgrounds[frame, pix], jitter=True, generator=self.ranks.shard(self.generator))
             self.samples += out.samples_evaluated
             return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso, self.ranks)
 

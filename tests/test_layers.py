@@ -1,0 +1,137 @@
+"""Radiance layers: a frame is its layers composited front to back over the plate, with known
+answers from constant fields, and a new layer plugs into a model without editing it."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import Tensor, nn
+
+from adnerf.cameras import Camera
+from adnerf.conditions import FrameCondition
+from adnerf.data import SceneMeta
+from adnerf.fields import FieldOutput
+from adnerf.layers import RadianceLayer
+from adnerf.pose import HeadPose, euler_rotation
+from adnerf.talking_head import TalkingHead, model_config, render_frame, render_on_plate
+
+SIZE = 24
+
+
+class Constant(nn.Module):
+    """A field of one colour and one density everywhere (what the layer's box cuts out of it)."""
+
+    def __init__(self, rgb: tuple[float, float, float], density: float) -> None:
+        super().__init__()
+        self.anchor = nn.Parameter(torch.zeros(()))  # a parameter, for the layer to read the dtype from
+        self.rgb, self.density = torch.tensor(rgb), density
+        self.conditions_seen: list[Tensor | None] = []
+
+    def forward(self, positions: Tensor, directions: Tensor, condition: Tensor | None = None) -> FieldOutput:
+        self.conditions_seen.append(condition)
+        shape = positions.shape[:-1]
+        return FieldOutput(self.rgb.to(positions).expand(*shape, 3), torch.full(shape, self.density, dtype=positions.dtype, device=positions.device))
+
+
+def _scene() -> tuple[TalkingHead, Camera, HeadPose, Tensor]:
+    meta = SceneMeta(
+        width=SIZE, height=SIZE, intrinsics=(30.0, 30.0, SIZE / 2, SIZE / 2), fps=25.0, near=4.0, far=8.0, head_aabb=((-0.6, -0.7, -0.6), (0.6, 0.7, 0.6)),
+        torso_aabb=((-1.2, 0.3, 4.5), (1.2, 2.0, 6.5)), mouth=(0.0, 0.3, -0.5), feature_kind="logmel", feature_dim=8, n_frames=1, train=[0], test=[],
+    )  # fmt: skip
+    torch.manual_seed(0)
+    model = TalkingHead(model_config(meta)).eval()
+    pose = HeadPose(euler_rotation(0.2, -0.1, 0.05, like=torch.zeros((), dtype=torch.float64)), torch.tensor([0.0, 0.2, 6.0], dtype=torch.float64))
+    plate = torch.rand(SIZE, SIZE, 3, generator=torch.Generator().manual_seed(1))
+    return model, meta.camera(), pose, plate
+
+
+def _opacity(layer: RadianceLayer, rays, pose: HeadPose, density: float) -> Tensor:  # noqa: ANN001
+    """``1 - exp(-density * length of the ray inside the box)``: constant density, exactly."""
+    near, far = layer.crossing(rays, pose)
+    return -torch.expm1(-density * (far - near).clamp(min=0)).float()
+
+
+def test_a_frame_is_the_torso_over_the_head_over_the_plate() -> None:
+    model, cam, pose, plate = _scene()
+    head, torso = model.layers["head"], model.layers["torso"]
+    head.coarse = head.fine = Constant((1.0, 0.0, 0.0), 3.0)
+    torso.coarse = torso.fine = Constant((0.0, 0.0, 1.0), 2.0)
+    code = torch.zeros(model.config.audio_dim)
+    out = render_frame(model, cam, pose, code, plate)
+    rays = cam.rays().flatten()
+    a_h, a_t = _opacity(head, rays, pose, 3.0), _opacity(torso, rays, pose, 2.0)
+    both = (a_h > 0.3) & (a_t > 0.3)
+    assert both.any() and ((a_h > 0.3) & (a_t == 0)).any()  # the boxes overlap on screen, and not everywhere
+    red, blue = torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, 1.0])
+    head_on_plate = red * a_h[:, None] + (1 - a_h[:, None]) * plate.reshape(-1, 3)
+    want = blue * a_t[:, None] + (1 - a_t[:, None]) * head_on_plate
+    torch.testing.assert_close(out.rgb.reshape(-1, 3), want, rtol=0, atol=2e-5)
+    torch.testing.assert_close(out.head_opacity.reshape(-1), a_h, rtol=0, atol=2e-5)
+    torch.testing.assert_close(out.torso_opacity.reshape(-1), a_t, rtol=0, atol=2e-5)
+    # The head alone (the stage-1 picture), and the same along a subset of rays.
+    alone = render_frame(model, cam, pose, code, plate, layers=("head",))
+    torch.testing.assert_close(alone.rgb.reshape(-1, 3), head_on_plate, rtol=0, atol=2e-5)
+    some = torch.arange(0, SIZE * SIZE, 7)
+    part = render_on_plate(model, rays[some], FrameCondition(code, pose), plate.reshape(-1, 3)[some], layers=("head",))
+    torch.testing.assert_close(part, alone.rgb.reshape(-1, 3)[some], rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="no layer 'hat'"):
+        render_frame(model, cam, pose, code, plate, layers=("hat",))
+
+
+def test_each_layer_reads_its_own_conditions() -> None:
+    model, cam, pose, plate = _scene()
+    head, torso = model.layers["head"], model.layers["torso"]
+    head.coarse = head.fine = Constant((1.0, 0.0, 0.0), 3.0)
+    torso.coarse = torso.fine = Constant((0.0, 0.0, 1.0), 2.0)
+    code = torch.arange(model.config.audio_dim, dtype=torch.float32)
+    render_frame(model, cam, pose, code, plate)
+    assert all(torch.equal(c, code) for c in head.coarse.conditions_seen)  # the head: audio only
+    want = torch.cat([code, pose.code().float()])  # the torso: audio, then the pose's 9-d code
+    assert torso.coarse.conditions_seen and all(torch.equal(c, want) for c in torso.coarse.conditions_seen)
+
+
+def test_a_new_layer_plugs_in_without_editing_the_model() -> None:
+    """A toy "hat" layer (canonical, so it moves with the head; it reads a new signal) is added to
+    a model as it is; in front of everything it covers the head, behind the head it is covered."""
+    model, cam, pose, plate = _scene()
+    code = torch.zeros(model.config.audio_dim)
+    hat_field = Constant((0.0, 1.0, 0.0), 1e4)  # opaque green
+    hat = RadianceLayer("hat", hat_field, None, ((-0.3, -1.2, -0.3), (0.3, -0.6, 0.3)), (8, 0), space="canonical", conditions=("hat_style",))
+    style = torch.tensor([0.5, 0.25])
+    cond_extra = {"hat_style": style}
+    rays = cam.rays().flatten()
+    near, far = hat.crossing(rays, pose)
+    deep = (far - near) > 0.05  # rays that cross the hat for real: opaque there
+    assert deep.any()
+
+    model.layers["hat"] = hat  # on top of the stack
+    cond = FrameCondition(code, pose, cond_extra)
+    front = render_on_plate(model, rays, cond, plate.reshape(-1, 3))
+    torch.testing.assert_close(front[deep], torch.tensor([0.0, 1.0, 0.0]).expand(int(deep.sum()), 3), rtol=0, atol=1e-4)
+    assert all(torch.equal(c, style) for c in hat_field.conditions_seen)
+    # The hat moves with the head: under another pose it lies elsewhere on screen.
+    turned = HeadPose(pose.R, pose.t + torch.tensor([0.4, 0.0, 0.0], dtype=torch.float64))
+    assert not torch.equal(hat.crossing(rays, turned)[1] > hat.crossing(rays, turned)[0], far > near)
+
+    # Behind everything: the head's own layers now cover it where they are opaque.
+    model.layers = nn.ModuleDict({"hat": hat, "head": model.layers["head"], "torso": model.layers["torso"]})
+    model.layers["head"].coarse = model.layers["head"].fine = Constant((1.0, 0.0, 0.0), 1e4)
+    behind = render_on_plate(model, rays, cond, plate.reshape(-1, 3))
+    head_near, head_far = model.layers["head"].crossing(rays, pose)
+    covered = deep & ((head_far - head_near) > 0.05)
+    assert covered.any()
+    assert (behind[covered, 0] > 0.99).all()  # red head in front of the green hat
+    assert math.isclose(float(front[covered, 1].min()), 1.0, abs_tol=1e-4)
+
+
+def test_layers_refuse_what_they_cannot_render() -> None:
+    with pytest.raises(ValueError, match="space"):
+        RadianceLayer("x", Constant((0, 0, 0), 1.0), None, ((0, 0, 0), (1, 1, 1)), (4, 0), space="world", conditions=())
+    model, cam, pose, plate = _scene()
+    cfg = model.config
+    with pytest.raises(ValueError, match="condition values"):
+        TalkingHead(type(cfg)(**{**cfg.__dict__, "audio_dim": cfg.audio_dim + 1}))
+    with pytest.raises(KeyError, match="no 'eye' signal"):
+        FrameCondition(torch.zeros(3), pose).signal("eye")
