@@ -2,10 +2,10 @@
 
 Both runs take the head stage, then resume for the torso stage (two launches each), with the same
 total batch of rays. The two processes draw the same batch, render half each with the sampler's
-numbers sliced from the whole batch's draw, and average their gradients: the weights must match
-the single process's up to the order of floating-point sums (tolerance 1e-4 relative, 1e-5
-absolute after 10 Adam steps; a wrong slice, a missing average or a generator out of step moves
-them by orders of magnitude more).
+numbers sliced from the whole batch's draw, and average their gradients: every logged loss must
+match the single process's to 1e-5 relative, and 99.9% of every weight tensor's entries to 1e-4
+relative, 1e-5 absolute after 10 Adam steps (a wrong slice, a missing average or a generator out
+of step moves the losses and most weights by orders of magnitude more).
 """
 
 from __future__ import annotations
@@ -47,9 +47,18 @@ def test_two_processes_train_what_one_process_trains(tmp_path: Path) -> None:
     a = torch.load(one / "checkpoint.pt", weights_only=False)
     b = torch.load(two / "checkpoint.pt", weights_only=False)
     assert (a["head_step"], a["torso_step"]) == (b["head_step"], b["torso_step"]) == (6, 4)
+    # The same training, step by step: every logged loss agrees to float32 rounding ...
+    logs = [[json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()] for run in (one, two)]
+    assert [(r["stage"], r["step"]) for r in logs[0]] == [(r["stage"], r["step"]) for r in logs[1]]
+    for ra, rb in zip(*logs):
+        assert rb["loss"] == pytest.approx(ra["loss"], rel=1e-5) and rb["mse"] == pytest.approx(ra["mse"], rel=1e-5)
+    # ... and so do the weights, but for the few grid cells whose gradient is about 1e-9: Adam
+    # scales such a gradient up to a step of order lr / 10, so the order of the two processes'
+    # floating-point sums decides them (measured: up to 5e-4 in 0.01% of the finest head plane).
     for key, value in a["model"].items():
-        if value.is_floating_point():
-            torch.testing.assert_close(b["model"][key], value, rtol=1e-4, atol=1e-5, msg=key)
+        if value.is_floating_point() and value.numel():
+            close = torch.isclose(b["model"][key], value, rtol=1e-4, atol=1e-5)
+            assert close.float().mean() >= 0.999, (key, float(close.float().mean()))
     # ... and training did move the weights (the comparison is not between two untouched models).
     fresh = train(data, tmp_path / "fresh", config=TrainConfig(**{**CFG, "head_iters": 0, "torso_iters": 0}), progress=False)
     c = torch.load(fresh / "checkpoint.pt", weights_only=False)

@@ -54,6 +54,10 @@ def test_preprocess_recovers_the_synthetic_truth(preprocessed: Path, scene: Path
     # The mouth point triangulated from the lip landmarks lands on the true mouth (measured 1.8 px
     # here; the fixed guess that --face none keeps lands 14.7 px away).
     assert out["mouth_error_median_px"] < 4.0
+    # The eye points are triangulated like the mouth (eye rays of heads that blink): on the eyes.
+    assert out["eye_error_median_px"] < 4.0
+    ds = load_dataset(preprocessed)
+    assert ds.eye is not None and ds.eye.shape == (75,) and 0.0 <= ds.eye.min() and ds.eye.max() <= 1.25 and np.median(ds.eye) == pytest.approx(1.0)
     report = json.loads((preprocessed / "preprocess_report.json").read_text())
     assert set(report["timings_s"]) == {"decode", "features", "parse", "face", "pose", "plate", "write"}
     assert report["parse_face_failures"] == 0

@@ -34,7 +34,6 @@ from .allocator import tune_allocator
 from .data import SceneMeta, load_dataset
 from .synth import SynthConfig, synthesize
 from .metrics import psnr_from_mse
-from .conditions import FrameCondition
 from .talking_head import ModelConfig, model_config, render_frame
 from .train import TrainConfig, _Trainer
 
@@ -83,9 +82,9 @@ CONFIGS: tuple[FieldBenchConfig, ...] = (
 )
 
 
-def bench_model_config(meta: SceneMeta, cfg: FieldBenchConfig) -> ModelConfig:
-    """The model a benchmark configuration trains."""
-    m = model_config(meta, cfg.preset)  # type: ignore[arg-type]
+def bench_model_config(meta: SceneMeta, cfg: FieldBenchConfig, eye: bool = False) -> ModelConfig:
+    """The model a benchmark configuration trains (``eye``: the head reads the eye openness)."""
+    m = model_config(meta, cfg.preset, eye=eye)  # type: ignore[arg-type]
     if not cfg.occupancy:
         m = replace(m, occupancy_resolution=0)
     if not cfg.fine:
@@ -123,7 +122,7 @@ def _eval_psnr(tr: _Trainer, evalset: list[tuple[int, torch.Tensor]]) -> float:
     for frame, pix in evalset:
         pose = tr.ds.head_pose(frame, device=tr.device)
         code = model.frame_code(tr.windows, frame, tr.smooth_audio)
-        out = model.layers["head"].render(tr.rays[pix], FrameCondition(code, pose), background=tr.plate[pix])
+        out = model.layers["head"].render(tr.rays[pix], tr.condition(frame, code, pose), background=tr.plate[pix])
         target = tr.head_target(frame, pix)
         se += float((out.final.rgb.float().clamp(0, 1) - target).square().sum())
         n += target.numel()
@@ -147,7 +146,7 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
     from tqdm.auto import tqdm
 
     ds = load_dataset(dataset, truth=False)
-    mcfg = bench_model_config(ds.meta, cfg)
+    mcfg = bench_model_config(ds.meta, cfg, eye=ds.eye is not None)
     times = sorted({float(t) for t in checkpoints if 0 < t < budget} | {float(budget)})
     with tempfile.TemporaryDirectory() as tmp:
         tcfg = TrainConfig(head_iters=10**9, checkpoint_every=10**9, log_every=10**9, seed=seed)

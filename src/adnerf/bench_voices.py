@@ -28,6 +28,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .readers import JawReader, exact_frame
+
 __all__ = ["DRIVE_SENTENCES", "DRIVING_VOICES", "TRAINING_VOICE", "JawReader", "Voice", "bench_voices", "format_voices_table", "mouth_follow"]
 
 # None of these is among the training scene's sentences (adnerf.synth.SENTENCES).
@@ -89,63 +91,6 @@ def _scene(folder: Path, kind: str, seconds: float, size: int, seed: int, log: C
     log(f"synthesising the training scene ({kind} features) into {folder}")
     synthesize(folder, config, overwrite=folder.exists())
     return folder
-
-
-def _exact_frame(head, torso, pose: np.ndarray, opening: float, plate: np.ndarray) -> np.ndarray:
-    """The synthetic scene rendered exactly (ray casting) at a pose and jaw opening, uint8."""
-    from .synth import render_frame
-
-    return np.round(np.clip(render_frame(head, torso, pose, opening, plate)[0], 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
-class JawReader:
-    """Reads the jaw opening off a rendered frame of the synthetic scene by analysis by synthesis.
-
-    For each distinct head pose, the scene is rendered exactly (:func:`adnerf.synth.render_frame`)
-    at ``steps`` openings from 0 to 1; a frame's opening is the one whose mouth crop is nearest
-    to the frame's in squared error, refined by a parabola through the nearest three. On the
-    scene's own frames it returns the true jaw to within the grid's refinement, so its
-    correlation with the truth is nearly 1: unlike the darkness of the mouth crop, it measures
-    the render, not the measure.
-
-    Args:
-        ds: The synthetic dataset (camera, background, mouth point).
-        poses: ``(P, 4, 4)`` distinct head poses the frames are rendered with.
-        steps: Openings in the grid.
-    """
-
-    def __init__(self, ds, poses: np.ndarray, steps: int = 21) -> None:
-        import torch
-
-        from .evaluate import crops, mouth_boxes_at
-        from .pose import HeadPose
-        from .synth import HeadModel, TorsoModel
-
-        self.openings = np.linspace(0.0, 1.0, steps)
-        self.boxes = mouth_boxes_at(ds.meta, HeadPose.from_matrix(torch.as_tensor(poses, dtype=torch.float64)))
-        head, torso = HeadModel(ds.meta.width), TorsoModel(ds.meta.width)
-        plate = ds.background.astype(np.float64) / 255.0
-        templates = []
-        for pose, box in zip(poses, self.boxes):
-            frames = np.stack([_exact_frame(head, torso, pose, o, plate) for o in self.openings])
-            templates.append(crops(frames, np.repeat(box[None], steps, axis=0)).astype(np.float32))
-        self.templates = np.stack(templates)  # (P, steps, s, s, 3)
-
-    def read(self, frames: np.ndarray, pose_index: np.ndarray) -> np.ndarray:
-        """Openings ``(N,)`` of frames ``(N, H, W, 3)`` uint8 rendered with poses ``pose_index``."""
-        out = np.empty(len(frames))
-        step = self.openings[1] - self.openings[0]
-        for i, (frame, p) in enumerate(zip(frames, pose_index)):
-            x0, y0, x1, y1 = self.boxes[p]
-            crop = frame[y0:y1, x0:x1].astype(np.float32)
-            err = ((self.templates[p] - crop) ** 2).mean(axis=(1, 2, 3))
-            k = int(np.argmin(err))
-            shift = 0.0
-            if 0 < k < len(err) - 1:
-                curve = err[k - 1] - 2 * err[k] + err[k + 1]
-                shift = 0.5 * (err[k - 1] - err[k + 1]) / curve if curve > 0 else 0.0
-            out[i] = float(np.clip(self.openings[k] + shift * step, 0.0, 1.0))
-        return out
 
 
 def bench_voices(
@@ -232,7 +177,7 @@ def bench_voices(
         jaw = jaw_track(speech.phonemes or (), times, end=drive_seconds)
         pose_index = pingpong(np.arange(len(test_poses)), n)
         poses = test_poses[pose_index]
-        truth_frames = np.stack([_exact_frame(head, torso, p, o, scene_plate) for p, o in zip(poses, jaw)])
+        truth_frames = np.stack([exact_frame(head, torso, p, scene_plate, opening=o) for p, o in zip(poses, jaw)])
         read_truth = reader.read(truth_frames, pose_index)
         row: dict = {"voice": voice.label, "speaker": voice.speaker, "words_per_minute": voice.words_per_minute, "frames": n, "reader_on_truth": mouth_follow(read_truth, jaw)}
         track = {"voice": voice.label, "jaw": jaw}

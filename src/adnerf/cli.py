@@ -384,7 +384,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     if not args.output.endswith(".mp4"):
         raise CliError(f"{args.output}: the output must be an .mp4 file")
-    inputs = [args.audio, args.poses, args.features, args.background]
+    inputs = [args.audio, args.poses, args.features, args.background, None if args.blink in ("auto", "none") else args.blink]
     check_render_outputs(args.output, args.frames, inputs=inputs, overwrite=args.overwrite)  # before loading and rendering
     run = load_run(args.run, _device(args.device))
     bars: list[tqdm] = []  # opened at the first frame, so a refused input prints no bar
@@ -407,13 +407,15 @@ def _cmd_render(args: argparse.Namespace) -> int:
             background=args.background,
             features=args.features,
             frames_dir=args.frames,
+            blink=args.blink,
             overwrite=args.overwrite,
             progress=tick,
         )
     finally:
         for bar in bars:
             bar.close()
-    print(f"{summary['output']}: {summary['frames']} frames, {summary['audio_seconds']:.2f} s, rendered at {summary['render_fps']:.2f} frames/s")
+    blinks = "" if summary["blinks"] is None else f", {summary['blinks']} blinks"
+    print(f"{summary['output']}: {summary['frames']} frames, {summary['audio_seconds']:.2f} s{blinks}, rendered at {summary['render_fps']:.2f} frames/s")
     return 0
 
 
@@ -612,6 +614,7 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--roll", type=_number(float, -180.0, 180.0), default=0.0, help="degrees added about the viewing axis, -180 to 180; positive turns the head clockwise in the image")
     rn.add_argument("--features", default=None, help=".npy of precomputed feature windows (M, 16, D) for the audio, one per frame (e.g. AD-NeRF's DeepSpeech aud.npy); required for runs trained on imported DeepSpeech features")
     rn.add_argument("--background", default=None, help="replacement background image")
+    rn.add_argument("--blink", default="auto", metavar="auto|none|FILE.npy", help="eye openness for runs trained with eyes (datasets with eye.npy): auto plays natural blinks (one every 2-6 s, 0.2 s long), none keeps the eyes open, a .npy gives one value per frame (1 open, 0 closed)")
     rn.add_argument("--frames", default=None, help="also write the frames as PNGs (000000.png, ...) into this folder; never inside a dataset or run")
     rn.add_argument("--overwrite", action="store_true", help="replace an existing output .mp4 and existing frame PNGs (never an input)")
     rn.add_argument("--device", default="cpu", help="cpu or cuda")

@@ -21,7 +21,13 @@ from torch import Tensor
 from .fields import POSE_CODE_DIM
 from .pose import HeadPose
 
-__all__ = ["FrameCondition", "signal_width", "POSE_CODE_DIM"]
+__all__ = ["FrameCondition", "SIGNAL_WIDTHS", "signal_width"]
+
+# Widths of the signals other than the audio code (whose width is the model's ``audio_dim``).
+SIGNAL_WIDTHS = {
+    "pose": POSE_CODE_DIM,  # the head pose's continuous code
+    "eye": 1,  # eye openness: 1 open as usual, 0 closed (a dataset's eye.npy)
+}
 
 
 
@@ -60,12 +66,15 @@ class FrameCondition:
         return torch.cat([self.signal(n).to(dtype) for n in names], dim=-1)
 
 
-def signal_width(name: str, audio_dim: int, extra: Mapping[str, int] | None = None) -> int:
-    """The width of a signal in a model whose audio code has ``audio_dim`` entries."""
+def signal_width(name: str, audio_dim: int) -> int:
+    """The width of a signal in a model whose audio code has ``audio_dim`` entries
+    (:data:`SIGNAL_WIDTHS` for the others).
+
+    Raises:
+        KeyError: An unknown signal.
+    """
     if name == "audio":
         return audio_dim
-    if name == "pose":
-        return POSE_CODE_DIM
-    if extra and name in extra:
-        return int(extra[name])
-    raise KeyError(f"unknown condition signal {name!r}")
+    if name not in SIGNAL_WIDTHS:
+        raise KeyError(f"unknown condition signal {name!r}; known: audio, {', '.join(SIGNAL_WIDTHS)}")
+    return SIGNAL_WIDTHS[name]

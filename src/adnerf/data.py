@@ -11,12 +11,16 @@ Layout (format ``adnerf-dataset``, version 1)::
       poses.npy            (N, 4, 4) float64 head-canonical -> camera transforms
       audio.wav            the audio track (mono PCM, clock starts at frame 0's time)
       features.npy         (N, 16, D) float32 audio feature windows, one per frame
+      eye.npy              optional: (N,) float32 eye openness per frame (1: open as usual in this
+                           clip, 0: closed), the head's eye condition; from the landmarks' eye
+                           aspect ratio (adnerf preprocess, import-adnerf) or exact (synth)
       landmarks.npy        optional: (N, 68, 2) float64 face landmarks (iBUG layout, pixel centres at
                            +0.5) from adnerf preprocess or an imported AD-NeRF folder; training does
                            not read them (the mouth point in meta.json was derived from them)
       truth/               synthetic scenes only: poses.npy, parsing.npy (N, H, W) uint8,
                            depth.npy (N, H, W) float32 (distance along the unit pixel ray,
-                           +inf where no surface), jaw.npy (N,) mouth opening in [0, 1]
+                           +inf where no surface), jaw.npy (N,) mouth opening in [0, 1],
+                           eye.npy (N,) eye openness in [0, 1] (older scenes: absent)
 
 Conventions: the camera is static with OpenCV axes (x right, y down, z forward) and is the world
 frame; a pose maps head-canonical points ``p`` to camera points ``R p + t``; the head box
@@ -50,6 +54,7 @@ FORMAT = "adnerf-dataset"
 VERSION = 1
 LABEL_BACKGROUND, LABEL_HEAD, LABEL_TORSO = 0, 1, 2
 MOUTH_CROP = 0.8  # side of the square around the mouth point (scene units) that evaluation crops and training favours
+EYE_CROP = 0.4  # side of the square around each eye point (scene units) that training favours in heads that blink
 
 
 class DatasetError(ValueError):
@@ -76,6 +81,8 @@ class SceneMeta:
         train: Training frame indices.
         test: Held-out frame indices.
         source: Where the dataset came from (free text).
+        eyes: Both eyes' centres in canonical space (image-left first), or ``None`` (datasets
+            without landmarks or made before blinks): where training favours rays for the eyes.
     """
 
     fps: float
@@ -93,6 +100,15 @@ class SceneMeta:
     train: list[int]
     test: list[int]
     source: str = ""
+    eyes: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+
+    def to_dict(self) -> dict:
+        """JSON-ready fields; ``eyes`` only when known (so metadata from before it reads and
+        fingerprints as it did)."""
+        d = asdict(self)
+        if d["eyes"] is None:
+            del d["eyes"]
+        return d
 
     def validate(self, where: str = "meta.json") -> None:
         """Raise :class:`DatasetError` on values that cannot describe a scene."""
@@ -104,6 +120,8 @@ class SceneMeta:
             lo, hi = (np.asarray(v, dtype=float) for v in getattr(self, name))
             if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
                 raise DatasetError(f"{where}: {name} must be two 3-vectors with max > min")
+        if self.eyes is not None and (np.shape(self.eyes) != (2, 3) or not np.isfinite(np.asarray(self.eyes, dtype=float)).all()):
+            raise DatasetError(f"{where}: eyes must be two finite 3-vectors (canonical eye centres)")
         if not self.train:
             raise DatasetError(f"{where}: the train split is empty")
         indices = list(self.train) + list(self.test)
@@ -116,6 +134,19 @@ class SceneMeta:
         """The static camera (world = camera frame)."""
         K = intrinsics_matrix(*self.intrinsics, dtype=dtype).to(device)
         return Camera(K, self.height, self.width)
+
+    def eyes_in_image(self, pose: HeadPose) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where the canonical eye points appear under one head pose: pixels ``(2, 2)`` and camera
+        depths ``(2,)``.
+
+        Raises:
+            ValueError: The dataset has no eye points.
+        """
+        if self.eyes is None:
+            raise ValueError("this dataset has no eye points (meta.json eyes)")
+        eyes = torch.tensor(self.eyes, dtype=pose.R.dtype, device=pose.R.device)
+        p = pose.from_canonical(eyes)
+        return self.camera(pose.R.dtype, pose.R.device).project(p), p[..., 2]
 
     def mouth_in_image(self, pose: HeadPose) -> tuple[torch.Tensor, torch.Tensor]:
         """Where the canonical mouth point appears under head pose(s) ``pose`` (batch ``(...)``):
@@ -139,12 +170,14 @@ class Truth:
         parsing: ``(N, H, W)`` uint8 label maps.
         depth: ``(N, H, W)`` float32 distance along the unit pixel ray (``inf``: background).
         jaw: ``(N,)`` mouth opening in ``[0, 1]``.
+        eye: ``(N,)`` eye openness in ``[0, 1]`` (``None`` for scenes made before blinks).
     """
 
     poses: np.ndarray
     parsing: np.ndarray
     depth: np.ndarray
     jaw: np.ndarray
+    eye: np.ndarray | None = None
 
 
 @dataclass
@@ -161,6 +194,7 @@ class TalkingHeadDataset:
         features: ``(N, 16, D)`` float32.
         audio: The audio track.
         truth: :class:`Truth` for synthetic scenes, else ``None``.
+        eye: ``(N,)`` float32 eye openness (``eye.npy``), ``None`` when the dataset has none.
     """
 
     root: Path
@@ -172,12 +206,14 @@ class TalkingHeadDataset:
     features: np.ndarray
     audio: AudioTrack
     truth: Truth | None = field(default=None, repr=False)
+    eye: np.ndarray | None = None
 
     def fingerprint(self) -> str:
         """SHA-256 of the dataset's content (metadata, frames, parsing, plate, poses, features,
         audio): equal for the same data wherever the folder lies, different after any change."""
-        h = hashlib.sha256(json.dumps(asdict(self.meta), sort_keys=True).encode())
-        for arr in (self.frames, self.parsing, self.background, self.poses, self.features, self.audio.samples):
+        h = hashlib.sha256(json.dumps(self.meta.to_dict(), sort_keys=True).encode())
+        arrays = [self.frames, self.parsing, self.background, self.poses, self.features, self.audio.samples]
+        for arr in arrays + ([] if self.eye is None else [self.eye]):  # datasets without eyes keep their fingerprint
             a = np.ascontiguousarray(arr)
             h.update(f"{a.dtype}{a.shape}".encode())
             h.update(a.data)
@@ -227,6 +263,7 @@ def save_dataset(
     features: np.ndarray,
     audio: AudioTrack,
     truth: Truth | None = None,
+    eye: np.ndarray | None = None,
     extra: Callable[[Path], None] | None = None,
     overwrite: bool = False,
     inputs: Sequence[str | Path] = (),
@@ -243,6 +280,7 @@ def save_dataset(
         features: ``(N, 16, D)``.
         audio: Audio whose sample 0 plays with frame 0.
         truth: Exact quantities of a synthetic scene.
+        eye: ``(N,)`` eye openness (``eye.npy``), or ``None``.
         extra: Called with the temporary folder to add more files (e.g. an mp4) before the rename.
         overwrite: Replace an existing adnerf dataset there (never another folder: see
             :func:`adnerf.outputs.check_folder_output`).
@@ -259,6 +297,7 @@ def save_dataset(
     check_folder_output(root, "dataset", inputs=inputs, overwrite=overwrite)
     meta.validate()
     _check_arrays(meta, frames, parsing, background, poses, features, str(root))
+    _check_eye(eye, meta.n_frames, str(root))
     tmp = root.with_name(f".{root.name}.tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "frames").mkdir(parents=True)
@@ -271,15 +310,19 @@ def save_dataset(
         np.save(tmp / "poses.npy", np.asarray(poses, dtype=np.float64))
         np.save(tmp / "features.npy", np.asarray(features, dtype=np.float32))
         write_wav(tmp / "audio.wav", audio)
+        if eye is not None:
+            np.save(tmp / "eye.npy", np.asarray(eye, dtype=np.float32))
         if truth is not None:
             (tmp / "truth").mkdir()
             np.save(tmp / "truth" / "poses.npy", np.asarray(truth.poses, dtype=np.float64))
             np.save(tmp / "truth" / "parsing.npy", np.asarray(truth.parsing, dtype=np.uint8))
             np.save(tmp / "truth" / "depth.npy", np.asarray(truth.depth, dtype=np.float32))
             np.save(tmp / "truth" / "jaw.npy", np.asarray(truth.jaw, dtype=np.float64))
+            if truth.eye is not None:
+                np.save(tmp / "truth" / "eye.npy", np.asarray(truth.eye, dtype=np.float64))
         if extra is not None:
             extra(tmp)
-        doc = {"format": FORMAT, "version": VERSION, **asdict(meta)}
+        doc = {"format": FORMAT, "version": VERSION, **meta.to_dict()}
         (tmp / "meta.json").write_text(json.dumps(doc, indent=1))
         if root.exists():
             shutil.rmtree(root)
@@ -287,6 +330,14 @@ def save_dataset(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return root
+
+
+def _check_eye(eye: np.ndarray | None, n: int, where: str) -> None:
+    if eye is None:
+        return
+    eye = np.asarray(eye)
+    if eye.shape != (n,) or not np.isfinite(eye).all():
+        raise DatasetError(f"{where}: eye openness must be ({n},) finite values; got shape {eye.shape}")
 
 
 def _check_arrays(meta: SceneMeta, frames: np.ndarray, parsing: np.ndarray, background: np.ndarray, poses: np.ndarray, features: np.ndarray, where: str) -> None:
@@ -349,7 +400,7 @@ def read_meta(root: str | Path) -> SceneMeta:
         )
     body = {k: v for k, v in doc.items() if k not in ("format", "version")}
     known = set(SceneMeta.__dataclass_fields__)
-    missing = known - set(body) - {"source"}
+    missing = known - set(body) - {"source", "eyes"}
     if missing:
         raise DatasetError(f"{path}: missing keys {sorted(missing)}")
     unknown = set(body) - known
@@ -359,6 +410,8 @@ def read_meta(root: str | Path) -> SceneMeta:
     body["head_aabb"] = tuple(tuple(v) for v in body["head_aabb"])
     body["torso_aabb"] = tuple(tuple(v) for v in body["torso_aabb"])
     body["mouth"] = tuple(body["mouth"])
+    if body.get("eyes") is not None:
+        body["eyes"] = tuple(tuple(v) for v in body["eyes"])
     meta = SceneMeta(**body)
     meta.validate(str(path))
     return meta
@@ -390,8 +443,11 @@ def load_dataset(root: str | Path, *, truth: bool = True) -> TalkingHeadDataset:
         audio = read_audio(root / "audio.wav")
     except MediaError as exc:
         raise DatasetError(str(exc)) from exc
+    eye = np.load(root / "eye.npy") if (root / "eye.npy").exists() else None
+    _check_eye(eye, n, str(root))
     tr = None
     if truth and (root / "truth").is_dir():
         t = root / "truth"
-        tr = Truth(np.load(t / "poses.npy"), np.load(t / "parsing.npy"), np.load(t / "depth.npy"), np.load(t / "jaw.npy"))
-    return TalkingHeadDataset(root, meta, frames, parsing, background, poses, features, audio, tr)
+        true_eye = np.load(t / "eye.npy") if (t / "eye.npy").exists() else None
+        tr = Truth(np.load(t / "poses.npy"), np.load(t / "parsing.npy"), np.load(t / "depth.npy"), np.load(t / "jaw.npy"), true_eye)
+    return TalkingHeadDataset(root, meta, frames, parsing, background, poses, features, audio, tr, eye)

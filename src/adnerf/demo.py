@@ -47,22 +47,25 @@ def new_background(height: int, width: int) -> np.ndarray:
     return cv2.resize(img[:, x0 : x0 + h], (width, height), interpolation=cv2.INTER_AREA)
 
 
-def check_reused_scene(meta: SceneMeta, config: SynthConfig, where: Path) -> None:
+def check_reused_scene(meta: SceneMeta, config: SynthConfig, where: Path, has_eye: bool = True) -> None:
     """Raise :class:`~adnerf.data.DatasetError` if the scene in ``where`` is not the one ``config``
-    makes (length, size, frame rate, held-out frames, what drives the jaw), e.g. one left by an
-    older demo: its figures would be reported under this demo's settings."""
+    makes (length, size, frame rate, held-out frames, what drives the jaw, whether it blinks:
+    ``has_eye``, the dataset has ``eye.npy``), e.g. one left by an older demo: its figures would be
+    reported under this demo's settings."""
     from .synth import espeak_available
 
     n = config.n_frames
     _, test = tail_split(n, config.test_fraction)
     mouth = config.mouth if config.mouth != "auto" else ("visemes" if config.voice != "formant" and espeak_available() else "loudness")
     found_mouth = "visemes" if "mouth=visemes" in meta.source else "loudness"  # scenes before visemes say nothing
-    found = (meta.n_frames, meta.width, meta.height, meta.fps, list(meta.test), found_mouth)
-    wanted = (n, config.size, config.size, config.fps, test, mouth)
+    blinks = has_eye and "blinks=off" not in meta.source
+    found = (meta.n_frames, meta.width, meta.height, meta.fps, list(meta.test), found_mouth, blinks)
+    wanted = (n, config.size, config.size, config.fps, test, mouth, config.blinks)
     if found != wanted:
+        said = {True: "blinking", False: "not blinking"}
         raise DatasetError(
-            f"{where} holds another scene ({meta.source}; {meta.n_frames} frames, {len(meta.test)} held out, {found_mouth} jaw) than this demo "
-            f"makes ({config.seconds:g} s at {config.fps:g} fps, {config.size} px, {len(test)} held out, {mouth} jaw); "
+            f"{where} holds another scene ({meta.source}; {meta.n_frames} frames, {len(meta.test)} held out, {found_mouth} jaw, {said[blinks]}) than this demo "
+            f"makes ({config.seconds:g} s at {config.fps:g} fps, {config.size} px, {len(test)} held out, {mouth} jaw, {said[config.blinks]}); "
             "choose another output folder or delete that one"
         )
 
@@ -92,6 +95,60 @@ def contact_sheet(path: Path, rows: list[np.ndarray], titles: list[str], row_lab
     return path
 
 
+DEMO_BLINK_GAP = (0.5, 1.0)  # blinks commanded on the held-out frames: 3-5 in their 3 s
+
+
+def blinks_on_command(run, ds, test: list[int], plate: np.ndarray, seed: int = 1) -> dict:  # noqa: ANN001
+    """Blink the held-out frames on command and read the eyes back.
+
+    The held-out poses and audio are rendered with a commanded eye-openness track (natural blinks,
+    closer together: :data:`DEMO_BLINK_GAP`); :class:`~adnerf.readers.EyeReader` reads the eye
+    openness off the renders and off the scene rendered exactly with the same command.
+
+    Returns:
+        ``blink_corr`` (the reading of the renders against the command, Pearson), ``blink_corr_gt``
+        (the same of the exact frames: the ceiling the reader allows), ``blinks_commanded``, and a
+        contact-sheet row (``strip``, ``strip_label``): the eyes enlarged, truth closed, then the
+        render at openness 1, 0.5 and 0.
+    """
+    import cv2
+
+    from .blinks import blink_track
+    from .landmark_metrics import pearson
+    from .readers import EyeReader, exact_frame
+    from .synth import HeadModel, TorsoModel
+
+    fps = ds.meta.fps
+    command = blink_track(np.arange(len(test)) / fps, seed, gap=DEMO_BLINK_GAP).astype(np.float32)
+    poses = ds.poses[test]
+    rendered = render_frames(run, ds.features[test], poses, plate, eye=command).frames
+    reader = EyeReader(ds, poses)
+    head, torso = HeadModel(ds.meta.width), TorsoModel(ds.meta.width)
+    scene_plate = ds.background.astype(np.float64) / 255.0
+    exact = np.stack([exact_frame(head, torso, p, scene_plate, opening=j, eye=e) for p, j, e in zip(poses, ds.truth.jaw[test], command)])
+    index = np.arange(len(test))
+    # The strip: one held-out frame, its eyes enlarged (a square around both eyes, nearest-neighbour).
+    k = int(np.argmin(command))
+    x0, y0, x1, y1 = reader.boxes[k]
+    side = max(x1 - x0, y1 - y0) + 6
+    cx, cy = (x0 + x1) // 2, (y0 + y1) // 2
+    a, b = max(0, cx - side // 2), max(0, cy - side // 2)
+    H, W = ds.meta.height, ds.meta.width
+
+    def zoom(img: np.ndarray) -> np.ndarray:
+        return cv2.resize(img[b : b + side, a : a + side], (W, H), interpolation=cv2.INTER_NEAREST)
+
+    at = [render_frames(run, ds.features[test[k] : test[k] + 1], poses[k : k + 1], plate, eye=np.array([e], np.float32)).frames[0] for e in (1.0, 0.5, 0.0)]
+    truth_closed = exact_frame(head, torso, poses[k], scene_plate, opening=float(ds.truth.jaw[test[k]]), eye=0.0)
+    return {
+        "blink_corr": pearson(reader.read(rendered, index), command),
+        "blink_corr_gt": pearson(reader.read(exact, index), command),
+        "blinks_commanded": int(((command[1:] < 0.5) & (command[:-1] >= 0.5)).sum()),
+        "strip": np.stack([zoom(truth_closed)] + [zoom(f) for f in at]),
+        "strip_label": f"eyes, frame {test[k]}: truth closed | render open, half, closed",
+    }
+
+
 def run_demo(
     out_dir: str | Path = "adnerf_demo",
     *,
@@ -111,7 +168,7 @@ def run_demo(
         synthesize(data_dir, synth_config)
     synth_seconds = time.perf_counter() - t0
     ds = load_dataset(data_dir)
-    check_reused_scene(ds.meta, synth_config, data_dir)
+    check_reused_scene(ds.meta, synth_config, data_dir, has_eye=ds.eye is not None)
     t1 = time.perf_counter()
     train(data_dir, run_dir, config=train_config, device=device, resume=(run_dir / "run.json").exists(), progress=progress)
     train_seconds = time.perf_counter() - t1
@@ -129,13 +186,14 @@ def run_demo(
     start = int(round(test[0] / ds.meta.fps * sr))
     stop = int(round((test[-1] + 1) / ds.meta.fps * sr))
     write_video(out / "demo.mp4", panels, ds.meta.fps, AudioTrack(ds.audio.samples[start:stop], sr, 0.0))
+    blinks = blinks_on_command(run, ds, test, plate) if run.model.reads_eye and ds.truth is not None else None
     picks = np.linspace(0, len(test) - 1, 5).round().astype(int)
-    contact_sheet(
-        out / "contact_sheet.png",
-        [np.stack([gt[k], plain.frames[k], turned.frames[k], replaced.frames[k]]) for k in picks],
-        ["ground truth", "render (test audio)", f"yaw +{DEMO_YAW:g} deg", "new background"],
-        [f"frame {test[k]}" for k in picks],
-    )
+    rows = [np.stack([gt[k], plain.frames[k], turned.frames[k], replaced.frames[k]]) for k in picks]
+    labels = [f"frame {test[k]}" for k in picks]
+    if blinks is not None:
+        rows.append(blinks.pop("strip"))
+        labels.append(blinks.pop("strip_label"))
+    contact_sheet(out / "contact_sheet.png", rows, ["ground truth", "render (test audio)", f"yaw +{DEMO_YAW:g} deg", "new background"], labels)
     result = {
         "psnr_test": metrics["psnr"],
         "ssim_test": metrics["ssim"],
@@ -143,6 +201,7 @@ def run_demo(
         "ssim_mouth_test": metrics["ssim_mouth"],
         "mouth_open_corr": metrics.get("mouth_open_corr"),
         "mouth_open_corr_gt": metrics.get("mouth_open_corr_gt"),
+        **(blinks or {}),
         "test_frames": metrics["frames"],
         "train_seconds": train_seconds,
         "synth_seconds": synth_seconds,

@@ -229,7 +229,8 @@ def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test", *, landm
     if not frames:
         raise ValueError(f"the dataset's {split} split is empty")
     plate = ds.background.astype(np.float32) / 255.0
-    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate)
+    eye = ds.eye[frames] if ds.eye is not None and run.model.reads_eye else None  # the dataset's own blinks
+    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate, eye=eye)
     metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips, syncnet=syncnet)
     metrics["split"] = split
     return metrics, clip

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from .data import DatasetError, SceneMeta, check_poses
+from .blinks import eye_track
 from .features import FEATURE_KINDS, MODEL_RATE, FeatureSpec, load_npy_windows, speech_windows
 from .io import AudioTrack, MediaError, read_audio, write_video
 from .outputs import check_file_output, check_frames_folder
@@ -143,6 +144,7 @@ def render_frames(
     yaw: float = 0.0,
     pitch: float = 0.0,
     roll: float = 0.0,
+    eye: np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> RenderedClip:
     """Render one frame per feature window.
@@ -156,6 +158,8 @@ def render_frames(
             positive turns the face towards the image's left (the person's right).
         pitch: About the horizontal axis, degrees; positive nods the face down.
         roll: About the viewing axis, degrees; positive turns the head clockwise in the image.
+        eye: Eye openness per frame ``(N,)`` (1 open, 0 closed) for runs whose head reads it;
+            ``None``: open.
         progress: Called as ``progress(done, total)``.
     """
     model = run.model
@@ -163,6 +167,8 @@ def render_frames(
     meta = run.meta
     if len(poses) != len(windows):
         raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
+    if eye is not None and (np.shape(eye) != (len(windows),) or not np.isfinite(eye).all()):
+        raise RenderError(f"eye openness must be {len(windows)} finite values, one per frame; got shape {np.shape(eye)}")
     if not all(math.isfinite(a) for a in (yaw, pitch, roll)):
         raise RenderError(f"yaw, pitch and roll must be finite degrees; got {yaw}, {pitch}, {roll}")
     _checked_poses(np.asarray(poses, dtype=np.float64), "poses")
@@ -181,7 +187,7 @@ def render_frames(
     angles = [math.radians(a) for a in (yaw, pitch, roll)]
     for i in range(n):
         pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev)).perturbed(*angles)
-        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, layers=run.trained_layers, amp=run.train_config.amp)
+        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, eye=None if eye is None else float(eye[i]), layers=run.trained_layers, amp=run.train_config.amp)
         frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
         head_op[i] = out.head_opacity.cpu().numpy()
         torso_op[i] = out.torso_opacity.cpu().numpy()
@@ -213,10 +219,15 @@ def render_audio_video(
     background: str | Path | None = None,
     features: str | Path | None = None,
     frames_dir: str | Path | None = None,
+    blink: str | Path = "auto",
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Render the run saying the audio of ``audio_path`` and write an mp4 with that audio.
+
+    A run whose head reads the eye openness blinks as ``blink`` says
+    (:func:`adnerf.blinks.eye_track`: ``"auto"`` natural blinks, ``"none"`` eyes open, or an
+    ``.npy`` of one value per frame); other runs cannot blink and refuse a file.
 
     The audio's feature windows are computed with the run's extractor, or read from ``features``
     (an ``.npy`` of ``(M, 16, D)`` windows, one per frame at the run's fps; needed for runs whose
@@ -233,7 +244,10 @@ def render_audio_video(
 
     if poses_file is not None and from_dataset is not None:
         raise RenderError("give either a pose file or a dataset to take poses from, not both")
-    check_render_outputs(out, frames_dir, inputs=[audio_path, poses_file, features, background], overwrite=overwrite)
+    blink_file = None if str(blink) in ("auto", "none") else blink
+    check_render_outputs(out, frames_dir, inputs=[audio_path, poses_file, features, background, blink_file], overwrite=overwrite)
+    if blink_file is not None and not run.model.reads_eye:
+        raise RenderError(f"--blink {blink}: this run's head has no eye condition (it was trained on a dataset without eye.npy), so it cannot blink on command")
     try:
         audio = read_audio(audio_path, sample_rate=MODEL_RATE)
     except MediaError as exc:
@@ -276,7 +290,11 @@ def render_audio_video(
         plate = load_background(background, meta["height"], meta["width"])
     else:
         plate = load_background(run.root / "background.png", meta["height"], meta["width"])
-    clip = render_frames(run, windows, poses, plate, yaw=yaw, pitch=pitch, roll=roll, progress=progress)
+    try:
+        eye = eye_track(blink, n, meta["fps"]) if run.model.reads_eye else None
+    except ValueError as exc:
+        raise RenderError(str(exc)) from exc
+    clip = render_frames(run, windows, poses, plate, yaw=yaw, pitch=pitch, roll=roll, eye=eye, progress=progress)
     write_video(out, clip.frames, meta["fps"], AudioTrack(audio.samples, audio.sample_rate, 0.0))
     if frames_dir is not None:
         d = Path(frames_dir)
@@ -284,4 +302,4 @@ def render_audio_video(
         for name, f in zip(frame_names(n), clip.frames):
             if not cv2.imwrite(str(d / name), cv2.cvtColor(f, cv2.COLOR_RGB2BGR)):
                 raise RenderError(f"{d / name}: could not write the frame")
-    return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9)}
+    return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9), "blinks": None if eye is None else int(((eye[1:] < 0.5) & (eye[:-1] >= 0.5)).sum())}

@@ -163,7 +163,7 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
 
 def check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, root: Path) -> None:
     """Refuse to resume ``root`` on a dataset other than the one it was trained on."""
-    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
+    meta = {k: v for k, v in ds.meta.to_dict().items() if k not in ("train", "test")}
     stored = doc.get("dataset_sha256")
     same = stored == ds.fingerprint() if stored else json.loads(json.dumps(meta)) == doc.get("meta")
     if not same:
@@ -185,7 +185,7 @@ def load_model_state(model: TalkingHead, state: dict, path: Path) -> None:
 def write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, distributed: dict) -> None:
     """``run.json`` (with how the run is trained: processes, backend, devices) and the plate."""
     root.mkdir(parents=True, exist_ok=True)
-    meta = {k: v for k, v in asdict(ds.meta).items() if k not in ("train", "test")}
+    meta = {k: v for k, v in ds.meta.to_dict().items() if k not in ("train", "test")}
     doc = {
         "format": RUN_FORMAT,
         "version": RUN_VERSION,

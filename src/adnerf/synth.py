@@ -10,6 +10,9 @@ dataset is exactly what a radiance field rendered with our cameras can reproduce
   point (shading baked in canonical space), so the head is rigid in its canonical frame except for
 * a jaw: the lower face rotates about a hinge behind the mouth by an angle proportional to the
   mouth opening, and a dark mouth interior painted at the lips grows with it;
+* eyelids: skin-coloured lids close over both eyes from the top with a dark lash line at their
+  edge, in blinks at random times independent of the speech (:func:`adnerf.blinks.blink_track`: one
+  every 2-6 s, 0.2 s long), with the eye openness of every frame as exact truth;
 * a torso (neck and shoulders wearing the photograph's orange suit) in camera space, whose smaller
   motion is a fixed function of the head pose (so a field conditioned on the pose can learn it);
 * a static background (``skimage.data.rocket()``), a smooth random head pose track, and
@@ -35,6 +38,7 @@ import cv2
 import numpy as np
 import trimesh
 
+from .blinks import blink_track
 from .data import LABEL_HEAD, LABEL_TORSO, SceneMeta, Truth, save_dataset, tail_split
 from .espeak import PAUSE, Phoneme, espeak_ready, speak
 from .features import FeatureSpec, resample, speech_windows, voiced_loudness
@@ -42,7 +46,7 @@ from .io import AudioTrack, write_video
 from .outputs import check_folder_output
 from .visemes import jaw_track
 
-__all__ = ["SynthConfig", "Speech", "HeadModel", "TorsoModel", "background_plate", "espeak_speech", "jaw_opening", "render_frame", "speech_audio", "mouth_opening", "pose_track", "synthesize"]
+__all__ = ["SynthConfig", "Speech", "HeadModel", "TorsoModel", "background_plate", "blink_track", "eye_centres", "espeak_speech", "jaw_opening", "render_frame", "speech_audio", "mouth_opening", "pose_track", "synthesize"]
 
 SAMPLE_RATE = 16000
 HEAD_RADII = np.array([0.8, 1.0, 0.9])
@@ -53,6 +57,9 @@ TORSO_AABB = ((-2.6, -0.2, 5.2), (2.6, 3.0, 7.4))
 NEAR, FAR = 4.0, 8.5
 FOCAL_PER_PIXEL = 1.33  # fx = fy = 1.33 * size: the frame spans 4.5 units at the head's distance
 JAW_MAX_ANGLE = 0.14  # radians at full opening: the chin drops by about 7% of the head height
+# The photograph's eyes on the rest surface (x, y) and the semi-axes of the lids' ellipses.
+EYES = ((-0.195, -0.04), (0.203, -0.04))
+EYE_AXES = (0.09, 0.055)
 _LIGHT = np.array([-0.35, -0.5, -1.0]) / np.linalg.norm([-0.35, -0.5, -1.0])
 
 SENTENCES = [
@@ -92,6 +99,7 @@ class SynthConfig:
         features: Audio feature kind stored with the dataset (see :class:`FeatureSpec`).
         test_fraction: Fraction of frames, at the end of the clip, held out for testing.
         max_yaw: Amplitude of the head's yaw in degrees (pitch and roll are smaller).
+        blinks: Whether the eyes blink (:func:`adnerf.blinks.blink_track`); off: always open.
     """
 
     seconds: float = 18.0
@@ -105,6 +113,7 @@ class SynthConfig:
     features: str = "logmel"
     test_fraction: float = 0.15
     max_yaw: float = 20.0
+    blinks: bool = True
 
     @property
     def n_frames(self) -> int:
@@ -324,6 +333,15 @@ def torso_pose(head_pose: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------- textures
 
 
+def eye_centres() -> np.ndarray:
+    """The eyes' centres in canonical space ``(2, 3)``: on the head's front surface at :data:`EYES`."""
+    out = []
+    for x, y in EYES:
+        z = -HEAD_RADII[2] * math.sqrt(max(0.0, 1.0 - (x / HEAD_RADII[0]) ** 2 - (y / HEAD_RADII[1]) ** 2))
+        out.append((x, y, z))
+    return np.array(out)
+
+
 def _photo() -> np.ndarray:
     from skimage import data
 
@@ -380,8 +398,9 @@ class HeadModel:
         out[:, 2] = p[:, 1] * s + p[:, 2] * c + self.hinge[2]
         return out
 
-    def colors(self, rest_points: np.ndarray, opening: float) -> np.ndarray:
-        """Colours ``(n, 3)`` in [0, 1] at rest-surface points ``(n, 3)``."""
+    def colors(self, rest_points: np.ndarray, opening: float, eye: float = 1.0) -> np.ndarray:
+        """Colours ``(n, 3)`` in [0, 1] at rest-surface points ``(n, 3)`` with the jaw opened by
+        ``opening`` and the eyes open by ``eye`` (1: open, 0: the lids closed)."""
         x, y, z = rest_points.T
         n = rest_points / HEAD_RADII**2
         n /= np.linalg.norm(n, axis=1, keepdims=True)
@@ -396,6 +415,20 @@ class HeadModel:
         inside = ((x - mx) / 0.20) ** 2 + ((y - my - 0.5 * half_h) / half_h) ** 2 < 1.0
         inside &= z < 0
         rgb[inside] = np.array([0.22, 0.04, 0.06])
+        # The lids: from the top of each eye's ellipse down to a line that falls as the eye closes;
+        # skin from just above the eye (the texture's own lid), a dark lash line at the edge.
+        closed = 1.0 - float(np.clip(eye, 0.0, 1.0))
+        if closed > 0:
+            a, b = EYE_AXES
+            for ex, ey in EYES:
+                in_eye = (((x - ex) / a) ** 2 + ((y - ey) / b) ** 2 < 1.0) & (z < 0)
+                edge = ey - b + 2.0 * b * closed
+                lid = in_eye & (y <= edge)
+                if lid.any():
+                    skin = _sample(self.face, (105.0 + x[lid] * 118.0) * s, (95.0 + (ey - 1.6 * b) * 97.0) * s + 0 * y[lid])
+                    rgb[lid] = skin
+                    lash = lid & (y > edge - 0.018)
+                    rgb[lash] = np.array([0.18, 0.11, 0.09])
         shade = 0.72 + 0.28 * np.clip(n @ _LIGHT, 0.0, 1.0)
         return np.clip(rgb * shade[:, None], 0.0, 1.0)
 
@@ -449,8 +482,8 @@ def pixel_ray_directions(size: int) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def render_frame(head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: float, background: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Ray-cast one frame.
+def render_frame(head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: float, background: np.ndarray, eye: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ray-cast one frame (jaw opened by ``opening``, eyes open by ``eye``).
 
     Returns:
         ``(rgb (H, W, 3) float in [0, 1], labels (H, W) uint8, depth (H, W) float32)``.
@@ -472,7 +505,7 @@ def render_frame(head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: 
     bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
     if is_head.any():
         rest = np.einsum("nk,nkj->nj", bary[is_head], head.rest[head.faces[tri[is_head]]])
-        rgb[ray[is_head]] = head.colors(rest, opening)
+        rgb[ray[is_head]] = head.colors(rest, opening, eye)
         labels[ray[is_head]] = LABEL_HEAD
     if (~is_head).any():
         local_tri = tri[~is_head] - n_head
@@ -522,6 +555,7 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
     samples, voice = speech.samples, speech.voice
     times = np.arange(n) / config.fps
     jaw, mouth = jaw_opening(speech, times, config.mouth)
+    eye = blink_track(times, config.seed) if config.blinks else np.ones(n)
     poses = pose_track(n, config.fps, config.seed, config.max_yaw)
     head, torso = HeadModel(size), TorsoModel(size)
     background = background_plate(size)
@@ -529,7 +563,7 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
     labels = np.empty((n, size, size), dtype=np.uint8)
     depth = np.empty((n, size, size), dtype=np.float32)
     for i in range(n):
-        rgb, labels[i], depth[i] = render_frame(head, torso, poses[i], jaw[i], background)
+        rgb, labels[i], depth[i] = render_frame(head, torso, poses[i], jaw[i], background, eye[i])
         frames[i] = _to_u8(rgb)
         if progress is not None:
             progress("render", i + 1, n)
@@ -547,12 +581,13 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
         head_aabb=HEAD_AABB,
         torso_aabb=TORSO_AABB,
         mouth=MOUTH,
+        eyes=tuple(tuple(float(v) for v in e) for e in eye_centres()),  # type: ignore[arg-type]
         feature_kind=config.features,
         feature_dim=int(features.shape[-1]),
         n_frames=n,
         train=train,
         test=test,
-        source=f"adnerf synth: seconds={config.seconds} size={size} fps={config.fps} seed={config.seed} voice={voice}" + (f" speaker={config.speaker} wpm={config.words_per_minute}" if voice == "espeak" else "") + f" mouth={mouth}",
+        source=f"adnerf synth: seconds={config.seconds} size={size} fps={config.fps} seed={config.seed} voice={voice}" + (f" speaker={config.speaker} wpm={config.words_per_minute}" if voice == "espeak" else "") + f" mouth={mouth}" + ("" if config.blinks else " blinks=off"),
     )
 
     def add_video(folder: Path) -> None:
@@ -567,7 +602,8 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
         poses=poses,
         features=features,
         audio=audio,
-        truth=Truth(poses=poses, parsing=labels, depth=depth, jaw=jaw),
+        truth=Truth(poses=poses, parsing=labels, depth=depth, jaw=jaw, eye=eye),
+        eye=eye.astype(np.float32),
         extra=add_video,
         overwrite=overwrite,
     )

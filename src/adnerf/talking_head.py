@@ -91,6 +91,8 @@ class ModelConfig:
             space, torso: camera space); 0 turns empty-space skipping off.
         occupancy_threshold: Density (1 / scene unit) below which a cell is empty. At the
             default 0.01 a skipped sample of length 0.15 would have had opacity < 0.0015.
+        eye_dim: 1: the head also reads the frame's eye openness (datasets with ``eye.npy``;
+            blinks on command); 0: it does not (AD-NeRF, and runs made before blinks).
     """
 
     feature_dim: int
@@ -107,6 +109,12 @@ class ModelConfig:
     torso_samples: tuple[int, int] = (16, 16)
     occupancy_resolution: int = 32
     occupancy_threshold: float = 0.01
+    eye_dim: int = 0
+
+    @property
+    def head_conditions(self) -> tuple[str, ...]:
+        """What the head layer reads: the audio code, and the eye openness when ``eye_dim``."""
+        return ("audio", "eye") if self.eye_dim else ("audio",)
 
     def to_dict(self) -> dict:
         """JSON-serialisable form."""
@@ -130,18 +138,21 @@ class ModelConfig:
         return ModelConfig(**d)
 
 
-def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", audio_dim: int = 64) -> ModelConfig:
+def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", audio_dim: int = 64, eye: bool = False) -> ModelConfig:
     """The model for a dataset.
 
     ``"fast"``: tri-plane grids with small MLPs (the default; what trains on a CPU in minutes).
     ``"paper"``: AD-NeRF's 8x256 positional-encoding MLPs with 64 + 128 samples per ray.
+    ``eye``: the head also reads the eye openness (for a dataset with ``eye.npy``).
     """
+    eye_dim = 1 if eye else 0
+    head_cond = audio_dim + eye_dim
     torso_cond = audio_dim + POSE_CODE_DIM
     if preset == "paper":
         return ModelConfig(
             feature_dim=meta.feature_dim,
-            head=paper_config(audio_dim),
-            head_fine=paper_config(audio_dim),
+            head=paper_config(head_cond),
+            head_fine=paper_config(head_cond),
             torso=paper_config(torso_cond),
             torso_fine=paper_config(torso_cond),
             head_aabb=meta.head_aabb,
@@ -149,10 +160,11 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
             audio_dim=audio_dim,
             head_samples=(64, 128),
             torso_samples=(64, 128),
+            eye_dim=eye_dim,
         )
     if preset != "fast":
         raise ValueError(f"unknown model preset {preset!r}; choose fast or paper")
-    head = fast_config(audio_dim, *meta.head_aabb)
+    head = fast_config(head_cond, *meta.head_aabb)
     head_coarse = FieldConfig.from_dict({**head.to_dict(), "grid_max_resolution": 64, "width": 32})
     head_fine = FieldConfig.from_dict({**head.to_dict(), "grid_max_resolution": 256, "grid_levels": 4})
     torso = fast_config(torso_cond, *meta.torso_aabb)
@@ -169,6 +181,7 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
         head_aabb=meta.head_aabb,
         torso_aabb=meta.torso_aabb,
         audio_dim=audio_dim,
+        eye_dim=eye_dim,
     )
 
 
@@ -189,8 +202,8 @@ class TalkingHead(nn.Module):
 
     Attributes:
         layers: The layers back to front (drawn in this order over the plate): ``"head"``
-            (canonical space; audio) then ``"torso"`` (camera space; audio and head pose).
-            Another layer is one more entry, in its place in the stack.
+            (canonical space; audio, and eye openness with ``eye_dim``) then ``"torso"`` (camera
+            space; audio and head pose). Another layer is one more entry, in its place in the stack.
 
     Args:
         config: The architecture.
@@ -203,13 +216,26 @@ class TalkingHead(nn.Module):
         self.att_net = AudioAttNet(config.audio_dim, config.att_len, config.att_centre_logit)
         self.layers = nn.ModuleDict(
             {
-                "head": _layer(config, "head", config.head, config.head_fine, config.head_aabb, config.head_samples, "canonical", ("audio",)),
+                "head": _layer(config, "head", config.head, config.head_fine, config.head_aabb, config.head_samples, "canonical", config.head_conditions),
                 "torso": _layer(config, "torso", config.torso, config.torso_fine, config.torso_aabb, config.torso_samples, "camera", ("audio", "pose")),
             }
         )
         # Per-feature standardisation of the audio windows, fitted on the training frames.
         self.register_buffer("feature_mean", torch.zeros(config.feature_dim))
         self.register_buffer("feature_std", torch.ones(config.feature_dim))
+
+    @property
+    def reads_eye(self) -> bool:
+        """Whether a layer reads the eye openness (the model can blink on command)."""
+        return any("eye" in layer.conditions for layer in self.layers.values())
+
+    def condition(self, code: Tensor, pose: HeadPose, eye: float | Tensor | None = None) -> FrameCondition:
+        """A frame's condition from its audio code ``(audio_dim,)``, head pose and eye openness
+        (a number or ``(1,)``; ``None``: open, 1). The eye is left out for models that do not read it."""
+        if not self.reads_eye:
+            return FrameCondition(code, pose)
+        value = torch.as_tensor(1.0 if eye is None else eye, dtype=code.dtype, device=code.device).reshape(1)
+        return FrameCondition(code, pose, {"eye": value})
 
     def fit_feature_scale(self, windows: Tensor) -> None:
         """Set the standardisation from training windows ``(N, 16, D)`` (a zero std is left at 1)."""
@@ -373,6 +399,7 @@ def render_frame(
     code: Tensor,
     plate: Tensor,
     *,
+    eye: float | Tensor | None = None,
     layers: Sequence[str] | None = None,
     chunk: int | None = None,
     amp: str = "auto",
@@ -385,6 +412,7 @@ def render_frame(
         pose: The frame's head pose (single ``R (3, 3)``, ``t (3,)``).
         code: The frame's audio code ``(audio_dim,)``.
         plate: Background ``(H, W, 3)`` in ``[0, 1]``.
+        eye: The frame's eye openness (1 open, 0 closed; ``None``: open), for models that read it.
         layers: Names of the layers to draw (all when ``None``; ``("head",)``: the stage-1
             picture), in the model's order.
         chunk: Rays per batch (default :func:`render_chunk` of the device).
@@ -392,7 +420,7 @@ def render_frame(
     """
     H, W = camera.height, camera.width
     plate_flat = plate.reshape(-1, 3).to(torch.float32)
-    drawn = _render_layers(model, camera.rays().flatten(), FrameCondition(code, pose), layers, chunk, amp, H * W, plate_flat.device)
+    drawn = _render_layers(model, camera.rays().flatten(), model.condition(code, pose, eye), layers, chunk, amp, H * W, plate_flat.device)
     rgb = composite_layers([layer for layer, _ in reversed(drawn.values())], plate_flat).rgb
     return FrameRender(
         rgb=rgb.reshape(H, W, 3).clamp(0, 1),

@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 from .atomic import atomic_path
 from .distributed import Ranks, init_ranks
 from .outputs import check_folder_output, ensure_writable
-from .data import LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
+from .data import EYE_CROP, LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
 from .renderer import RenderOutput
 from .metrics import psnr_from_mse
 from .run_folder import RESUMABLE, Run, RunError, check_same_dataset, load_model_state, load_run, read_checkpoint, read_run_doc, resumed_config, save_atomic, stored_config, write_run
@@ -42,6 +42,9 @@ from .talking_head import ModelConfig, TalkingHead, mixed_precision, model_confi
 
 # The run folder and the schedule live in their own modules; re-exported for existing imports.
 __all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "load_run", "resumed_config", "stored_config", "train"]
+
+BLINKING = 0.75  # eye openness below which a training frame counts as blinking
+
 
 class _Schedule:
     """Exponential decay from each group's initial rate ``base`` to ``final * base`` at ``iters``.
@@ -60,15 +63,21 @@ class _Schedule:
         return self.base[0] * factor
 
 
-def _optimise(out: RenderOutput, target: torch.Tensor, mask: torch.Tensor, mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks()) -> tuple[float, float]:
+def _optimise(parts: list[tuple[RenderOutput, torch.Tensor, torch.Tensor]], mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks()) -> tuple[float, float]:
     """One step on the MSE of the coarse and fine colours plus ``mask_weight`` times the MSE of
-    their opacities against the parsing mask; returns ``(loss, fine colour MSE)``, averaged over
-    the processes (whose gradients are averaged before the step)."""
-    fine_mse = F.mse_loss(out.final.rgb.float(), target)
-    loss = F.mse_loss(out.coarse.rgb.float(), target) + fine_mse
-    if mask_weight > 0:
-        m = mask.float()
-        loss = loss + mask_weight * (F.mse_loss(out.coarse.opacity.float(), m) + F.mse_loss(out.final.opacity.float(), m))
+    their opacities against the parsing mask, over the rays of every ``(render, target, mask)``
+    part together (each part's mean weighted by its share of the rays); returns ``(loss, fine
+    colour MSE)``, averaged over the processes (whose gradients are averaged before the step)."""
+    total = sum(len(target) for _, target, _ in parts)
+    loss = fine_mse = torch.zeros((), device=parts[0][1].device)
+    for out, target, mask in parts:
+        share = len(target) / total
+        part_fine = F.mse_loss(out.final.rgb.float(), target)
+        part = F.mse_loss(out.coarse.rgb.float(), target) + part_fine
+        if mask_weight > 0:
+            m = mask.float()
+            part = part + mask_weight * (F.mse_loss(out.coarse.opacity.float(), m) + F.mse_loss(out.final.opacity.float(), m))
+        loss, fine_mse = (part, part_fine) if len(parts) == 1 else (loss + share * part, fine_mse + share * part_fine)
     optimizer.zero_grad(set_to_none=True)
     if loss.requires_grad:  # False when empty-space skipping left no sample on any ray
         loss.backward()
@@ -91,6 +100,11 @@ class _Trainer:
         self.is_head, self.is_torso = labels == LABEL_HEAD, labels == LABEL_TORSO
         self.windows = torch.as_tensor(ds.features, device=device)
         self.train_frames = torch.as_tensor(ds.meta.train, device=device)
+        if self.model.reads_eye and ds.eye is None:
+            raise RunError(f"the run's head reads the eye openness but {ds.root} has no eye.npy")
+        self.eye = torch.as_tensor(ds.eye, device=device) if ds.eye is not None and self.model.reads_eye else None
+        # Frames that teach the eye condition: the blinking ones (drawn more often, blink_frames).
+        self.blinking = self.train_frames[self.eye[self.train_frames] < BLINKING] if self.eye is not None else self.train_frames[:0]
         self.pixel_index = torch.arange(ds.meta.width * ds.meta.height, device=device)
         m = self.model
         m.fit_feature_scale(self.windows[self.train_frames])
@@ -153,9 +167,14 @@ class _Trainer:
             f.write(json.dumps(row) + "\n")
 
     # ---- sampling
-    def pick_frame(self) -> int:
-        k = int(torch.randint(len(self.train_frames), (1,), generator=self.generator))
-        return int(self.train_frames[k])
+    def pick_frame(self, blinks: bool = False) -> int:
+        """A random training frame; with ``blinks``, a blinking one in ``blink_frames`` of the draws
+        (when the head reads the eye openness and the clip blinks)."""
+        pool = self.train_frames
+        if blinks and self.blinking.numel() and float(torch.rand((), generator=self.generator)) < self.tcfg.blink_frames:
+            pool = self.blinking
+        k = int(torch.randint(len(pool), (1,), generator=self.generator))
+        return int(pool[k])
 
     def pick_rays(self, candidates: torch.Tensor, n: int | None = None) -> torch.Tensor:
         """``n`` (default ``rays``) pixel indices drawn with replacement from ``candidates``; from
@@ -166,6 +185,21 @@ class _Trainer:
         pool = candidates if candidates.numel() else self.pixel_index
         idx = torch.randint(pool.numel(), (n,), generator=self.generator).to(pool.device)
         return pool[idx]
+
+    def eye_pixels(self, pose) -> torch.Tensor:  # noqa: ANN001
+        """Flat indices of the pixels in squares of side ``EYE_CROP`` units around both eyes (none
+        when the head does not read the eye openness, the dataset has no eye points, or the clip
+        never blinks: then the eyes teach the condition nothing)."""
+        if self.eye is None or self.ds.meta.eyes is None or not self.blinking.numel():
+            return self.pixel_index[:0]
+        uv, depth = self.ds.meta.eyes_in_image(pose)
+        W = self.camera.width
+        cols, rows = self.pixel_index % W + 0.5, self.pixel_index // W + 0.5
+        inside = torch.zeros_like(self.pixel_index, dtype=torch.bool)
+        for k in range(2):
+            half = 0.5 * EYE_CROP * self.ds.meta.intrinsics[0] / float(depth[k])
+            inside |= ((cols - uv[k, 0]).abs() <= half) & ((rows - uv[k, 1]).abs() <= half)
+        return self.pixel_index[inside]
 
     def mouth_pixels(self, pose) -> torch.Tensor:
         """Flat indices of the pixels in the square of side ``MOUTH_CROP`` units around the mouth."""
@@ -179,6 +213,10 @@ class _Trainer:
 
     def code(self, frame: int, smooth: bool) -> torch.Tensor:
         return self.model.frame_code(self.windows, frame, smooth)
+
+    def condition(self, frame: int, code: torch.Tensor, pose) -> FrameCondition:  # noqa: ANN001
+        """Frame ``frame``'s condition: its audio code, head pose and (when the head reads it) eye openness."""
+        return self.model.condition(code, pose, None if self.eye is None else self.eye[frame])
 
     @property
     def smooth_audio(self) -> bool:
@@ -194,7 +232,7 @@ class _Trainer:
         if self.model.layers[layer].occupancy is None or step < self.tcfg.occupancy_start * iters:
             return
         if step % self.tcfg.occupancy_every == 0:
-            self.model.layers[layer].update_occupancy(FrameCondition(cond.audio.detach(), cond.pose), generator=self.generator)
+            self.model.layers[layer].update_occupancy(FrameCondition(cond.audio.detach(), cond.pose, cond.extra), generator=self.generator)
 
     # ---- stages
     def _loop(self, stage: str, iters: int, step_fn: Callable[[int], tuple[float, float]], max_steps: int | None) -> None:
@@ -230,6 +268,29 @@ class _Trainer:
                 self.save()
         bar.close()
 
+    def head_part(self, frame: int, pix: torch.Tensor, cond: FrameCondition) -> tuple[RenderOutput, torch.Tensor, torch.Tensor]:
+        """Render this process's part of stage-1 rays ``pix`` of ``frame``: ``(render, target, head mask)``."""
+        pix = self.ranks.part(pix)  # every process drew the same batch; it renders its part
+        with mixed_precision(self.device, self.tcfg.amp):
+            out = self.model.layers["head"].render(self.rays[pix], cond, background=self.plate[pix], jitter=True, generator=self.ranks.shard(self.generator))
+        self.samples += out.samples_evaluated
+        return out, self.head_target(frame, pix), self.is_head[frame, pix]
+
+    def eye_batch(self, smooth: bool) -> tuple[int, torch.Tensor, FrameCondition] | None:
+        """For heads that blink: ``eye_rays * rays`` more rays around the eyes of a frame drawn
+        among the blinking ones in ``blink_frames`` of the iterations (else among all), so the eye
+        condition is taught without taking rays or frames from the rest of the head; ``None`` for
+        heads without it (no random draw is made then)."""
+        if not self.blinking.numel() or self.ds.meta.eyes is None or self.tcfg.eye_rays <= 0:
+            return None
+        frame = self.pick_frame(blinks=True)
+        pose = self.ds.head_pose(frame, device=self.device)
+        eyes = self.eye_pixels(pose)
+        if not eyes.numel():
+            return None
+        pix = self.pick_rays(eyes, int(round(self.tcfg.eye_rays * self.tcfg.rays)))
+        return frame, pix, self.condition(frame, self.code(frame, smooth), pose)
+
     def head_stage(self, max_steps: int | None) -> None:
         tcfg = self.tcfg
         sched = _Schedule(self.opt_head, [tcfg.lr, tcfg.lr_audio], tcfg.head_iters, tcfg.lr_final)
@@ -237,6 +298,7 @@ class _Trainer:
 
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
+            smooth = step >= tcfg.att_start * tcfg.head_iters
             frame = self.pick_frame()
             pose = self.ds.head_pose(frame, device=self.device)
             near, far = self.model.layers["head"].crossing(self.rays, pose)
@@ -244,14 +306,13 @@ class _Trainer:
             mouth = self.mouth_pixels(pose)
             n_mouth = int(round(tcfg.mouth_rays * tcfg.rays)) if mouth.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
-            pix = self.ranks.part(pix)  # every process drew the same batch; it renders its part
-            target = self.head_target(frame, pix)
-            cond = FrameCondition(self.code(frame, smooth=step >= tcfg.att_start * tcfg.head_iters), pose)
+            cond = self.condition(frame, self.code(frame, smooth), pose)
             self.maybe_update_occupancy("head", step, tcfg.head_iters, cond)
-            with mixed_precision(self.device, tcfg.amp):
-                out = self.model.layers["head"].render(self.rays[pix], cond, background=self.plate[pix], jitter=True, generator=self.ranks.shard(self.generator))
-            self.samples += out.samples_evaluated
-            return _optimise(out, target, self.is_head[frame, pix], tcfg.mask_weight, self.opt_head, self.ranks)
+            parts = [self.head_part(frame, pix, cond)]
+            eye_batch = self.eye_batch(smooth)  # heads that blink: rays at the eyes of another frame
+            if eye_batch is not None:
+                parts.append(self.head_part(*eye_batch))
+            return _optimise(parts, tcfg.mask_weight, self.opt_head, self.ranks)
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
@@ -274,7 +335,7 @@ class _Trainer:
         for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
             pix = torch.nonzero(in_box | self.is_torso[frame])[:, 0]
             pose = self.ds.head_pose(frame, device=self.device)
-            out[frame, pix] = render_on_plate(self.model, self.rays[pix], FrameCondition(codes[frame], pose), self.plate[pix], layers=("head",), amp=self.tcfg.amp)
+            out[frame, pix] = render_on_plate(self.model, self.rays[pix], self.condition(frame, codes[frame], pose), self.plate[pix], layers=("head",), amp=self.tcfg.amp)
         if self.ranks.main:
             save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
         return out
@@ -300,12 +361,12 @@ class _Trainer:
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
             pix = self.ranks.part(pix)
             target = self.frames[frame, pix]
-            cond = FrameCondition(codes[frame], pose)
+            cond = self.condition(frame, codes[frame], pose)
             self.maybe_update_occupancy("torso", step, tcfg.torso_iters, cond)
             with mixed_precision(self.device, tcfg.amp):
                 out = self.model.layers["torso"].render(self.rays[pix], cond, background=backgrounds[frame, pix], jitter=True, generator=self.ranks.shard(self.generator))
             self.samples += out.samples_evaluated
-            return _optimise(out, target, self.is_torso[frame, pix], tcfg.mask_weight, self.opt_torso, self.ranks)
+            return _optimise([(out, target, self.is_torso[frame, pix])], tcfg.mask_weight, self.opt_torso, self.ranks)
 
         self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
 
@@ -366,7 +427,7 @@ def train(
             raise RunError(f"{root}: a run already exists there; pass --resume to continue it or choose another folder")
         check_folder_output(root, "run", inputs=[dataset], flag=None)
         tcfg = config or TrainConfig()
-        mcfg = model_config(ds.meta, tcfg.preset)  # type: ignore[arg-type]
+        mcfg = model_config(ds.meta, tcfg.preset, eye=ds.eye is not None)  # type: ignore[arg-type]
     tcfg.validate()
     if mcfg.feature_dim != ds.meta.feature_dim:
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")

@@ -56,7 +56,7 @@ from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
 from ..features import load_npy_windows
 from ..io import AudioTrack, MediaError, read_audio
 from ..outputs import check_folder_output
-from .landmarks import mouth_centres
+from .landmarks import eye_centres_px, eye_openness, mouth_centres
 from .pipeline import PreprocessError, scene_bounds
 
 __all__ = ["adnerf_pose_to_ours", "import_adnerf", "ours_pose_to_adnerf", "parse_adnerf_parsing"]
@@ -257,7 +257,7 @@ def import_adnerf(
     scale = _scale_to_head_width(labels, poses, focal, head_width)
     poses[:, :3, 3] *= scale
     K = (focal, focal, cx, cy)
-    b = scene_bounds(labels, poses, K, head_width, None if landmarks is None else mouth_centres(landmarks))
+    b = scene_bounds(labels, poses, K, head_width, None if landmarks is None else mouth_centres(landmarks), None if landmarks is None else eye_centres_px(landmarks))
     # AD-NeRF's head origin is the face model's, not the middle of the head: widen the box across and in depth.
     (x0, y0, z0), (x1, y1, z1) = b["head_aabb"]
     b["head_aabb"] = ((x0 - 0.15 * head_width, y0, z0 - 0.3 * head_width), (x1 + 0.15 * head_width, y1, z1 + 0.3 * head_width))
@@ -285,7 +285,8 @@ def import_adnerf(
         if landmarks is not None:
             np.save(folder / "landmarks.npy", landmarks)
 
-    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, extra=extra, overwrite=overwrite, inputs=inputs)
+    eye = None if landmarks is None else eye_openness(landmarks)
+    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, eye=eye, extra=extra, overwrite=overwrite, inputs=inputs)
     return {
         "dataset": str(out),
         "frames": n,

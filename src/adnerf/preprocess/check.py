@@ -9,7 +9,10 @@
 * **Plate**: PSNR against the true background on pixels the video ever shows as background.
 * **Mouth point**: where the dataset's canonical mouth point appears under the estimated poses,
   against where the true mouth point appears under the true poses, in pixels (the mouth crop of
-  training and evaluation is centred there).
+  training and evaluation is centred there); the same for the two eye points (where heads that
+  blink draw their eye rays).
+* **Eye openness**: the correlation of the dataset's eye openness (from the landmarks' eye aspect
+  ratio) with the true one, over all frames.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data import load_dataset
+from ..landmark_metrics import pearson
 from ..metrics import psnr
 from .headpose import align_poses, project_points
 from .parsing import layer_check
@@ -51,7 +55,7 @@ def parsing_iou(pred: np.ndarray, true: np.ndarray, classes: tuple[int, ...] = (
 
 
 def _mouth_pixels(mouth: tuple[float, float, float], poses: np.ndarray, K: tuple[float, float, float, float]) -> np.ndarray:
-    """``(N, 2)`` pixel positions of the canonical point ``mouth`` under ``poses``."""
+    """``(N, 2)`` pixel positions of the canonical point ``mouth`` (or any) under ``poses``."""
     return project_points(poses[:, :3, :3] @ np.asarray(mouth, dtype=np.float64) + poses[:, :3, 3], K)
 
 
@@ -99,6 +103,14 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
         "mouth_error_max_px": float(mouth_err.max()),
         "bars": BARS,
     }
+    if est.meta.eyes is not None and ref.meta.eyes is not None:  # the eye points, as the mouth's
+        eye_err = np.concatenate([
+            np.linalg.norm(_mouth_pixels(e, est.poses, est.meta.intrinsics) - _mouth_pixels(r, ref.truth.poses, ref.meta.intrinsics), axis=1)
+            for e, r in zip(est.meta.eyes, ref.meta.eyes)
+        ])  # fmt: skip
+        out["eye_error_median_px"] = float(np.median(eye_err))
+    if est.eye is not None and ref.truth.eye is not None:
+        out["eye_openness_corr"] = pearson(est.eye, ref.truth.eye)
     lms = Path(dataset) / "landmarks.npy"
     if lms.exists():  # the mouth in the head layer: in the written parsing and in the truth's
         landmarks = np.load(lms)

@@ -43,6 +43,9 @@ __all__ = [
     "FaceTrack",
     "track_faces",
     "mouth_centres",
+    "eye_aspect_ratio",
+    "eye_centres_px",
+    "eye_openness",
     "make_face_detector",
     "bundled_shape_predictor",
     "JAW",
@@ -211,6 +214,44 @@ class FaceTrack:
 def mouth_centres(landmarks: np.ndarray) -> np.ndarray:
     """``(..., 2)`` centre of the inner lips of ``(..., 68, 2)`` landmarks (pixels)."""
     return landmarks[..., INNER_LIPS, :].mean(-2)
+
+
+def eye_centres_px(landmarks: np.ndarray) -> np.ndarray:
+    """``(..., 2, 2)`` centres of both eyes (36-41, the image-left eye, then 42-47) of ``(..., 68, 2)`` landmarks."""
+    return np.stack([landmarks[..., 36:42, :].mean(-2), landmarks[..., 42:48, :].mean(-2)], axis=-2)
+
+
+def eye_aspect_ratio(landmarks: np.ndarray) -> np.ndarray:
+    """The eye aspect ratio (Soukupova and Cech, 2016) of ``(..., 68, 2)`` landmarks, both eyes'
+    mean: ``(|p2 - p6| + |p3 - p5|) / (2 |p1 - p4|)`` over each eye's six points (36-41, 42-47);
+    about 0.3 for an open eye, under 0.1 for a closed one. Shape ``(...)``."""
+    ratios = []
+    for first in (36, 42):
+        p = landmarks[..., first : first + 6, :]
+        vertical = np.linalg.norm(p[..., 1, :] - p[..., 5, :], axis=-1) + np.linalg.norm(p[..., 2, :] - p[..., 4, :], axis=-1)
+        ratios.append(vertical / (2.0 * np.linalg.norm(p[..., 0, :] - p[..., 3, :], axis=-1)))
+    return 0.5 * (ratios[0] + ratios[1])
+
+
+EYE_CLOSED_RATIO = 0.4  # a closed eye's aspect ratio as a fraction of the clip's usual (open) one
+
+
+def eye_openness(landmarks: np.ndarray) -> np.ndarray:
+    """Per-frame eye openness ``(N,)`` float32 from ``(N, 68, 2)`` landmarks, normalised per clip.
+
+    The eye aspect ratio (:func:`eye_aspect_ratio`; the landmarks are already smoothed over time
+    by :func:`track_faces`) mapped so that the clip's median (eyes are open most of the time) is 1
+    and :data:`EYE_CLOSED_RATIO` of it is 0, clipped to ``[0, 1.25]``. Frames without finite
+    landmarks take the median (open).
+    """
+    ear = eye_aspect_ratio(np.asarray(landmarks, dtype=np.float64))
+    ok = np.isfinite(ear)
+    if not ok.any():
+        return np.ones(len(ear), np.float32)
+    usual = float(np.median(ear[ok]))
+    closed = EYE_CLOSED_RATIO * usual
+    out = np.where(ok, (ear - closed) / max(usual - closed, 1e-9), 1.0)
+    return np.clip(out, 0.0, 1.25).astype(np.float32)
 
 
 def _search_window(head: np.ndarray, h: int, w: int, config: FaceTrackConfig) -> tuple[int, int, int, float]:

@@ -46,7 +46,7 @@ from ..data import LABEL_HEAD, LABEL_TORSO, DatasetError, SceneMeta, save_datase
 from ..io import AudioTrack, MediaError, read_audio, read_video
 from ..outputs import OutputError, check_folder_output
 from .headpose import project_points
-from .landmarks import NOSE_BASE, mouth_centres
+from .landmarks import NOSE_BASE, eye_centres_px, eye_openness, mouth_centres
 from .parsing import JAW_MARGIN, layer_check, split_at_landmarks
 
 __all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "step_bars", "STEPS"]
@@ -447,7 +447,7 @@ def _step_plate(work: _Work, bar: Bar) -> dict:
     return doc
 
 
-def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, mouth_pixels: np.ndarray | None = None) -> dict:
+def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, mouth_pixels: np.ndarray | None = None, eye_pixels: np.ndarray | None = None) -> dict:
     """Head box (canonical), torso box (camera), near/far and mouth point from the tracked head.
 
     The mouth point is triangulated from ``mouth_pixels`` (``(N, 2)``, e.g. the centre of the inner
@@ -490,7 +490,13 @@ def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, f
         from .headpose import triangulate_canonical
 
         mouth = tuple(float(v) for v in triangulate_canonical(mouth_pixels, poses, K, np.array(mouth)))
-    return {"head_aabb": head_aabb, "torso_aabb": torso_aabb, "near": near, "far": far, "mouth": mouth}
+    eyes = None
+    if eye_pixels is not None:  # (N, 2, 2): image-left eye first; triangulated like the mouth
+        from .headpose import triangulate_canonical
+
+        guesses = [np.array([side * 0.2 * head_width, 0.0, -0.5 * head_width]) for side in (-1.0, 1.0)]
+        eyes = tuple(tuple(float(v) for v in triangulate_canonical(eye_pixels[:, k], poses, K, guesses[k])) for k in range(2))
+    return {"head_aabb": head_aabb, "torso_aabb": torso_aabb, "near": near, "far": far, "mouth": mouth, "eyes": eyes}
 
 
 def _contact_sheet(
@@ -525,7 +531,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
     n = len(frames)
     K = _intrinsics(config, info["width"], info["height"])
     landmarks = _landmarks(work, config)
-    b = scene_bounds(labels, poses, K, config.head_width, None if landmarks is None else mouth_centres(landmarks))
+    b = scene_bounds(labels, poses, K, config.head_width, None if landmarks is None else mouth_centres(landmarks), None if landmarks is None else eye_centres_px(landmarks))
     train, test = tail_split(n, config.test_fraction)
     meta = SceneMeta(
         fps=float(info["fps"]),
@@ -580,7 +586,8 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         if landmarks is not None:
             np.save(folder / "landmarks.npy", landmarks)
 
-    save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, extra=extra, overwrite=overwrite, inputs=[video])
+    eye = None if landmarks is None else eye_openness(landmarks)  # the head's eye condition
+    save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, eye=eye, extra=extra, overwrite=overwrite, inputs=[video])
     bar("write", 1, 1)
     return report
 
