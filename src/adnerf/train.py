@@ -69,15 +69,15 @@ def _optimise(parts: list[tuple[RenderOutput, torch.Tensor, torch.Tensor]], mask
     part together (each part's mean weighted by its share of the rays); returns ``(loss, fine
     colour MSE)``, averaged over the processes (whose gradients are averaged before the step)."""
     total = sum(len(target) for _, target, _ in parts)
-    loss = fine_mse = torch.zeros((), device=parts[0][1].device)
+    loss = fine_mse = 0.0
     for out, target, mask in parts:
-        share = len(target) / total
+        share = len(target) / total  # 1.0 for one part: the products and sums below are then exact
         part_fine = F.mse_loss(out.final.rgb.float(), target)
         part = F.mse_loss(out.coarse.rgb.float(), target) + part_fine
         if mask_weight > 0:
             m = mask.float()
             part = part + mask_weight * (F.mse_loss(out.coarse.opacity.float(), m) + F.mse_loss(out.final.opacity.float(), m))
-        loss, fine_mse = (part, part_fine) if len(parts) == 1 else (loss + share * part, fine_mse + share * part_fine)
+        loss, fine_mse = loss + share * part, fine_mse + share * part_fine
     optimizer.zero_grad(set_to_none=True)
     if loss.requires_grad:  # False when empty-space skipping left no sample on any ray
         loss.backward()
