@@ -201,3 +201,13 @@ def test_the_render_passes_each_frame_its_own_audio_code(scene: Path, run: Path,
         want = [r.model.frame_code(torch.as_tensor(ds.features[idx]), i, r.smooth_audio) for i in range(len(idx))]
     for got, exp in zip(codes, want):
         torch.testing.assert_close(got, exp)
+
+
+def test_the_audio_of_frames_is_what_plays_under_them(scene: Path) -> None:
+    ds = load_dataset(scene)
+    per_frame = ds.audio.sample_rate / ds.meta.fps  # 640 samples at 16 kHz and 25 fps
+    piece = ds.audio_of(10, 14)
+    assert piece.start == 0.0 and len(piece.samples) == round(4 * per_frame)
+    np.testing.assert_array_equal(piece.samples, ds.audio.samples[round(10 * per_frame) : round(14 * per_frame)])
+    tail = ds.audio_of(ds.meta.n_frames - 1, ds.meta.n_frames + 2)  # past the end: silence
+    assert len(tail.samples) == round(3 * per_frame) and not tail.samples[round(2 * per_frame) :].any()

@@ -219,6 +219,17 @@ class TalkingHeadDataset:
             h.update(a.data)
         return h.hexdigest()
 
+    def audio_of(self, first: int, stop: int) -> AudioTrack:
+        """The audio under frames ``first .. stop - 1``, from ``first / fps`` to ``stop / fps`` on
+        the audio clock (silence where the track does not reach), with its clock starting at 0."""
+        rate = self.audio.sample_rate
+        t0 = first / self.meta.fps - self.audio.start
+        a, b = int(round(t0 * rate)), int(round((t0 + (stop - first) / self.meta.fps) * rate))
+        piece = np.zeros(max(b - a, 0), np.float32)
+        src = self.audio.samples[max(a, 0) : max(min(b, len(self.audio.samples)), 0)]
+        piece[max(-a, 0) : max(-a, 0) + len(src)] = src
+        return AudioTrack(piece, rate, 0.0)
+
     def head_pose(self, index: int | Sequence[int] | np.ndarray, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> HeadPose:
         """The head pose(s) of frame(s) ``index`` as a :class:`HeadPose`."""
         return HeadPose.from_matrix(torch.as_tensor(self.poses[index], dtype=dtype, device=device))

@@ -20,7 +20,7 @@ import numpy as np
 
 from .data import DatasetError, SceneMeta, load_dataset, tail_split
 from .evaluate import evaluate_run
-from .io import AudioTrack, write_video
+from .io import write_video
 from .render_video import render_frames
 from .synth import SynthConfig, synthesize
 from .train import TrainConfig, load_run, train
@@ -182,10 +182,7 @@ def run_demo(
     replaced = render_frames(run, windows, poses, new_background(ds.meta.height, ds.meta.width))
     gt = ds.frames[test]
     panels = np.concatenate([gt, plain.frames, turned.frames, replaced.frames], axis=2)
-    sr = ds.audio.sample_rate
-    start = int(round(test[0] / ds.meta.fps * sr))
-    stop = int(round((test[-1] + 1) / ds.meta.fps * sr))
-    write_video(out / "demo.mp4", panels, ds.meta.fps, AudioTrack(ds.audio.samples[start:stop], sr, 0.0))
+    write_video(out / "demo.mp4", panels, ds.meta.fps, ds.audio_of(test[0], test[-1] + 1))
     blinks = blinks_on_command(run, ds, test, plate) if run.model.reads_eye and ds.truth is not None else None
     picks = np.linspace(0, len(test) - 1, 5).round().astype(int)
     rows = [np.stack([gt[k], plain.frames[k], turned.frames[k], replaced.frames[k]]) for k in picks]

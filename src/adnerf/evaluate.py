@@ -35,6 +35,7 @@ from .run_folder import Run
 
 if TYPE_CHECKING:
     from .lpips import LPIPS
+    from .preprocess.landmarks import FaceTrack
     from .syncnet import SyncNet
 
 __all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at", "syncnet_evaluation"]
@@ -105,18 +106,23 @@ def head_metrics(pred: np.ndarray, target: np.ndarray, labels: np.ndarray) -> tu
     return (float(np.mean(psnrs)) if psnrs else None, float(np.mean(ssims)) if ssims else None)
 
 
-def landmark_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.ndarray) -> dict:
+def true_faces(ds: TalkingHeadDataset, frames: list[int]) -> "FaceTrack":
+    """dlib's faces in the dataset's frames ``frames`` (searched around the true head label)."""
+    from .preprocess.landmarks import DlibFaceDetector, track_faces
+
+    return track_faces(ds.frames[frames], DlibFaceDetector(), ds.parsing[frames])
+
+
+def landmark_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.ndarray, true: "FaceTrack | None" = None) -> dict:
     """Landmark metrics (:func:`adnerf.landmark_metrics.landmark_metrics`) of rendered frames,
-    from dlib's landmarks on them and on the true frames (searched around the true head label).
-    Frames where the detector misses a face take interpolated landmarks; their counts are
-    reported, and with a face in fewer than half of the frames the metrics are ``None``."""
+    from dlib's landmarks on them and on the true frames (:func:`true_faces`, or ``true`` when
+    already found). Frames where the detector misses a face take interpolated landmarks; their
+    counts are reported, and with a face in fewer than half of the frames the metrics are ``None``."""
     from .landmark_metrics import landmark_metrics, mouth_opening
     from .preprocess.landmarks import DlibFaceDetector, track_faces
 
-    detector = DlibFaceDetector()
-    labels = ds.parsing[frames]
-    true = track_faces(ds.frames[frames], detector, labels)
-    pred = track_faces(rendered, detector, labels)
+    true = true if true is not None else true_faces(ds, frames)
+    pred = track_faces(rendered, DlibFaceDetector(), ds.parsing[frames])
     out: dict = {"landmarks_found_true": int(true.detected.sum()), "landmarks_found_render": int(pred.detected.sum())}
     if min(out["landmarks_found_true"], out["landmarks_found_render"]) < 0.5 * len(frames):
         return out
@@ -124,12 +130,12 @@ def landmark_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.
     return {**out, **landmark_metrics(pred.landmarks, true.landmarks).as_dict(), **series}
 
 
-def syncnet_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.ndarray, model: "SyncNet") -> dict:
+def syncnet_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.ndarray, model: "SyncNet", true: "FaceTrack | None" = None) -> dict:
     """SyncNet's scores (:func:`adnerf.syncnet.sync_scores`) of rendered frames and of the true
     ones, against the dataset's audio under them.
 
-    Both are cropped around the same smoothed dlib face boxes of the true frames, so the two
-    scores differ only by what the render changed.
+    Both are cropped around the same smoothed dlib face boxes of the true frames (``true``, or
+    :func:`true_faces`), so the two scores differ only by what the render changed.
 
     Returns:
         ``lse_d``, ``lse_c``, ``syncnet_offset_frames``, ``syncnet_windows``, ``syncnet_curve``
@@ -138,24 +144,16 @@ def syncnet_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.n
         second, frames not consecutive, no face found).
     """
     from .features import resample
-    from .io import AudioTrack
-    from .preprocess.landmarks import DlibFaceDetector, track_faces
     from .syncnet import SAMPLE_RATE, SYNCNET_FPS, face_crops, sync_scores
 
     if abs(ds.meta.fps - SYNCNET_FPS) > 1e-6:
         return {"syncnet": f"needs 25 frames per second (the dataset has {ds.meta.fps:g})"}
     if np.any(np.diff(frames) != 1):
         return {"syncnet": "needs consecutive frames"}
-    track = track_faces(ds.frames[frames], DlibFaceDetector(), ds.parsing[frames])
+    track = true if true is not None else true_faces(ds, frames)
     if not track.detected.any():
         return {"syncnet": "no face found in the true frames"}
-    audio = ds.audio
-    t0 = frames[0] / ds.meta.fps - audio.start  # seconds into the track
-    a, b = int(round(t0 * audio.sample_rate)), int(round((t0 + len(frames) / ds.meta.fps) * audio.sample_rate))
-    piece = np.zeros(b - a, np.float32)  # silence where the track does not reach
-    src = audio.samples[max(a, 0) : max(min(b, len(audio.samples)), 0)]
-    piece[max(-a, 0) : max(-a, 0) + len(src)] = src
-    samples = resample(AudioTrack(piece, audio.sample_rate), SAMPLE_RATE)
+    samples = resample(ds.audio_of(frames[0], frames[-1] + 1), SAMPLE_RATE)
     out = sync_scores(model, face_crops(rendered, track.boxes), samples).as_dict()
     true = sync_scores(model, face_crops(ds.frames[frames], track.boxes), samples)
     return {**out, "lse_d_true": true.lse_d, "lse_c_true": true.lse_c, "syncnet_offset_frames_true": true.offset_frames}
@@ -186,13 +184,14 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip,
         "render_fps": len(frames) / max(clip.seconds, 1e-9),
     }
     out["psnr_head"], out["ssim_head"] = head_metrics(clip.frames, gt, ds.parsing[frames])
+    true = true_faces(ds, frames) if landmarks or syncnet is not None else None  # found once for both
     if landmarks:
-        out.update(landmark_evaluation(ds, frames, clip.frames))
+        out.update(landmark_evaluation(ds, frames, clip.frames, true))
     if lpips is not None:
         device = next(lpips.buffers()).device
         out["lpips"] = float(np.mean([float(lpips(_to_tensor(clip.frames[i : i + 1]).to(device), _to_tensor(gt[i : i + 1]).to(device))[0]) for i in range(len(frames))]))
     if syncnet is not None:
-        out.update(syncnet_evaluation(ds, frames, clip.frames, syncnet))
+        out.update(syncnet_evaluation(ds, frames, clip.frames, syncnet, true))
     if ds.truth is not None:
         jaw = ds.truth.jaw[frames]
         rendered = [mouth_darkness(c) for c in pred_mouth]
