@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from adnerf.blinks import BLINK_GAP, BLINK_SECONDS, blink_track, eye_track
+from adnerf.blinks import BLINK_GAP, BLINK_SECONDS, blink_track, count_blinks, eye_track
 from adnerf.cli import main
 from adnerf.data import load_dataset
 from adnerf.layers import RadianceLayer
@@ -43,6 +43,7 @@ def test_natural_blinks_last_their_time_and_come_every_two_to_six_seconds() -> N
     ends = t[1:][~shut[1:] & shut[:-1]]
     assert 9 <= len(starts) <= 31  # 60 s at one per 2-6 s
     np.testing.assert_allclose(ends - starts[: len(ends)], BLINK_SECONDS, atol=0.002)
+    assert count_blinks(eye) == len(starts) and count_blinks(np.ones(5)) == 0  # each blink closes the eyes past half once
     gaps = np.diff(starts)
     assert gaps.min() >= BLINK_GAP[0] - 0.002 and gaps.max() <= BLINK_GAP[1] + 0.002
     assert np.array_equal(blink_track(t, seed=4), eye) and not np.array_equal(blink_track(t, seed=5), eye)

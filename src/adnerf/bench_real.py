@@ -294,7 +294,7 @@ def bench_real(
         "layers": report.get("layers"),
         **metrics,
         "lpips": metrics.get("lpips", "no weights"),
-        "syncnet": metrics.get("syncnet", "scored" if "lse_d" in metrics else "no weights"),
+        "syncnet": metrics["syncnet"],
         "driven": driven,
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
         "sheet": str(sheet),

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BLINK_GAP", "BLINK_SECONDS", "BLINK_CHOICES", "blink_track", "eye_track"]
+__all__ = ["BLINK_GAP", "BLINK_SECONDS", "BLINK_CHOICES", "blink_track", "count_blinks", "eye_track"]
 
 BLINK_SECONDS = 0.2
 BLINK_GAP = (2.0, 6.0)  # seconds between blinks
@@ -39,6 +39,12 @@ def blink_track(times: np.ndarray, seed: int = 0, gap: tuple[float, float] = BLI
         closed = np.maximum(closed, np.where((u >= 0) & (u <= 1), np.sin(np.pi * u) ** 2, 0.0))
         start += rng.uniform(*gap)
     return 1.0 - closed
+
+
+def count_blinks(eye: np.ndarray, closed: float = 0.5) -> int:
+    """How many times an eye-openness track ``(n,)`` falls below ``closed`` (a blink each)."""
+    eye = np.asarray(eye)
+    return int(((eye[1:] < closed) & (eye[:-1] >= closed)).sum())
 
 
 def eye_track(blink: str | Path, n: int, fps: float, seed: int = 0) -> np.ndarray:

@@ -437,7 +437,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     ds = load_dataset(args.dataset)
     metrics, _ = evaluate_run(run, ds, args.split, landmarks=not args.no_landmarks, lpips=model, syncnet=sync)
     metrics["lpips"] = metrics.get("lpips", "no weights")
-    metrics.setdefault("syncnet", "scored" if "lse_d" in metrics else "no weights")
     metrics.pop("syncnet_curve", None)
     metrics = {k: v for k, v in metrics.items() if not k.startswith("mouth_opening_")}  # the per-frame series: bench real --plot draws them
     if args.json:

@@ -113,7 +113,7 @@ def blinks_on_command(run, ds, test: list[int], plate: np.ndarray, seed: int = 1
     """
     import cv2
 
-    from .blinks import blink_track
+    from .blinks import blink_track, count_blinks
     from .landmark_metrics import pearson
     from .readers import EyeReader, exact_frame
     from .synth import HeadModel, TorsoModel
@@ -143,7 +143,7 @@ def blinks_on_command(run, ds, test: list[int], plate: np.ndarray, seed: int = 1
     return {
         "blink_corr": pearson(reader.read(rendered, index), command),
         "blink_corr_gt": pearson(reader.read(exact, index), command),
-        "blinks_commanded": int(((command[1:] < 0.5) & (command[:-1] >= 0.5)).sum()),
+        "blinks_commanded": count_blinks(command),
         "strip": np.stack([zoom(truth_closed)] + [zoom(f) for f in at]),
         "strip_label": f"eyes, frame {test[k]}: truth closed | render open, half, closed",
     }

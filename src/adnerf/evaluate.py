@@ -191,7 +191,9 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip,
         device = next(lpips.buffers()).device
         out["lpips"] = float(np.mean([float(lpips(_to_tensor(clip.frames[i : i + 1]).to(device), _to_tensor(gt[i : i + 1]).to(device))[0]) for i in range(len(frames))]))
     if syncnet is not None:
-        out.update(syncnet_evaluation(ds, frames, clip.frames, syncnet, true))
+        out.update({"syncnet": "scored", **syncnet_evaluation(ds, frames, clip.frames, syncnet, true)})  # or the reason it could not be
+    else:
+        out["syncnet"] = "no weights"
     if ds.truth is not None:
         jaw = ds.truth.jaw[frames]
         rendered = [mouth_darkness(c) for c in pred_mouth]

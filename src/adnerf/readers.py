@@ -29,15 +29,20 @@ def eye_boxes(meta, poses: np.ndarray, margin: float = 1.5) -> np.ndarray:  # no
     """Pixel boxes ``(P, 4)`` ``(x0, y0, x1, y1)`` (end exclusive) around both eyes of the
     synthetic head under poses ``(P, 4, 4)``: the projected eye centres, widened by ``margin``
     times the lids' semi-axes (at the eyes' depth), clipped to the image."""
+    import torch
+
+    from .pose import HeadPose
     from .synth import EYE_AXES, eye_centres
 
-    fx, fy, cx, cy = meta.intrinsics
-    centres = eye_centres()
+    fx, fy = meta.intrinsics[:2]
+    camera = meta.camera()
+    centres = torch.as_tensor(eye_centres())
     out = []
     for pose in poses:
-        cam = centres @ pose[:3, :3].T + pose[:3, 3]
-        u, v = fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy
-        ru, rv = margin * EYE_AXES[0] * fx / cam[:, 2].mean(), margin * EYE_AXES[1] * fy / cam[:, 2].mean()
+        cam = HeadPose.from_matrix(torch.as_tensor(pose, dtype=torch.float64)).from_canonical(centres)
+        uv, z = camera.project(cam).numpy(), cam[:, 2].numpy()
+        u, v = uv[:, 0], uv[:, 1]
+        ru, rv = margin * EYE_AXES[0] * fx / z.mean(), margin * EYE_AXES[1] * fy / z.mean()
         x0, x1 = int(np.floor(u.min() - ru)), int(np.ceil(u.max() + ru))
         y0, y1 = int(np.floor(v.min() - rv)), int(np.ceil(v.max() + rv))
         out.append((max(x0, 0), max(y0, 0), min(max(x1, x0 + 2), meta.width), min(max(y1, y0 + 2), meta.height)))
@@ -91,7 +96,6 @@ class JawReader(_TemplateReader):
         plate = ds.background.astype(np.float64) / 255.0
         boxes = mouth_boxes_at(ds.meta, HeadPose.from_matrix(torch.as_tensor(poses, dtype=torch.float64)))
         super().__init__(np.linspace(0.0, 1.0, steps), boxes, lambda p, v: exact_frame(head, torso, poses[p], plate, opening=v))
-        self.openings = self.values
 
 
 class EyeReader(_TemplateReader):

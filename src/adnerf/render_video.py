@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .data import DatasetError, SceneMeta, check_poses
-from .blinks import eye_track
+from .blinks import count_blinks, eye_track
 from .features import FEATURE_KINDS, MODEL_RATE, FeatureSpec, load_npy_windows, speech_windows
 from .io import AudioTrack, MediaError, read_audio, write_video
 from .outputs import check_file_output, check_frames_folder
@@ -302,4 +302,4 @@ def render_audio_video(
         for name, f in zip(frame_names(n), clip.frames):
             if not cv2.imwrite(str(d / name), cv2.cvtColor(f, cv2.COLOR_RGB2BGR)):
                 raise RenderError(f"{d / name}: could not write the frame")
-    return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9), "blinks": None if eye is None else int(((eye[1:] < 0.5) & (eye[:-1] >= 0.5)).sum())}
+    return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9), "blinks": None if eye is None else count_blinks(eye)}

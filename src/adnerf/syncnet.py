@@ -244,7 +244,7 @@ def sync_scores(model: nn.Module, crops: np.ndarray, samples: np.ndarray, *, max
     for a in range(0, last, batch):
         starts = range(a, min(last, a + batch))
         lip.append(model.forward_lip(torch.stack([video[:, s : s + WINDOW] for s in starts]).to(param)))
-        aud.append(model.forward_aud(torch.stack([cc[None, :, MFCC_PER_FRAME * s : MFCC_PER_FRAME * s + 4 * WINDOW] for s in starts]).to(param)))
+        aud.append(model.forward_aud(torch.stack([cc[None, :, MFCC_PER_FRAME * s : MFCC_PER_FRAME * (s + WINDOW)] for s in starts]).to(param)))
     curve = distance_curve(torch.cat(lip).double(), torch.cat(aud).double(), max_shift)
     best = int(torch.argmin(curve))
     low = float(curve[best])

@@ -54,9 +54,9 @@ def parsing_iou(pred: np.ndarray, true: np.ndarray, classes: tuple[int, ...] = (
     return out
 
 
-def _mouth_pixels(mouth: tuple[float, float, float], poses: np.ndarray, K: tuple[float, float, float, float]) -> np.ndarray:
-    """``(N, 2)`` pixel positions of the canonical point ``mouth`` (or any) under ``poses``."""
-    return project_points(poses[:, :3, :3] @ np.asarray(mouth, dtype=np.float64) + poses[:, :3, 3], K)
+def _canonical_pixels(point: tuple[float, float, float], poses: np.ndarray, K: tuple[float, float, float, float]) -> np.ndarray:
+    """``(N, 2)`` pixel positions of the canonical point ``point`` (the mouth's, an eye's) under ``poses``."""
+    return project_points(poses[:, :3, :3] @ np.asarray(point, dtype=np.float64) + poses[:, :3, 3], K)
 
 
 def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
@@ -85,7 +85,7 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
     iou = parsing_iou(est.parsing, ref.truth.parsing)
     seen = (ref.truth.parsing == 0).any(0)
     plate_psnr = psnr(est.background[seen], ref.background[seen])
-    mouth_err = np.linalg.norm(_mouth_pixels(est.meta.mouth, est.poses, est.meta.intrinsics) - _mouth_pixels(ref.meta.mouth, ref.truth.poses, ref.meta.intrinsics), axis=1)
+    mouth_err = np.linalg.norm(_canonical_pixels(est.meta.mouth, est.poses, est.meta.intrinsics) - _canonical_pixels(ref.meta.mouth, ref.truth.poses, ref.meta.intrinsics), axis=1)
     out = {
         "frames": int(len(est.poses)),
         "rotation_median_deg": float(np.median(rot)),
@@ -105,7 +105,7 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
     }
     if est.meta.eyes is not None and ref.meta.eyes is not None:  # the eye points, as the mouth's
         eye_err = np.concatenate([
-            np.linalg.norm(_mouth_pixels(e, est.poses, est.meta.intrinsics) - _mouth_pixels(r, ref.truth.poses, ref.meta.intrinsics), axis=1)
+            np.linalg.norm(_canonical_pixels(e, est.poses, est.meta.intrinsics) - _canonical_pixels(r, ref.truth.poses, ref.meta.intrinsics), axis=1)
             for e, r in zip(est.meta.eyes, ref.meta.eyes)
         ])  # fmt: skip
         out["eye_error_median_px"] = float(np.median(eye_err))
