@@ -247,7 +247,57 @@ def test_attention_can_start_near_the_identity() -> None:
 
     head = fast_config(64)
     model = TalkingHead(ModelConfig(29, head, head, fast_config(73), fast_config(73), ((-1, -1, -1), (1, 1, 1)), ((-1, -1, 1), (1, 1, 3))))
-    assert int(model.neighbours(10, 100)[model.config.att_len // 2]) == 10
+    rows = model.neighbours(torch.tensor([10, 0, 99]), 100)
+    assert rows[:, model.config.att_len // 2].tolist() == [10, 0, 99]
+    assert rows[0].tolist() == list(range(6, 14)) and rows[1].tolist() == [0, 0, 0, 0, 0, 1, 2, 3] and rows[2].tolist() == [95, 96, 97, 98, 99, 99, 99, 99]
+
+
+def _tiny_head() -> "TalkingHead":  # noqa: F821
+    from adnerf.fields import fast_config
+    from adnerf.talking_head import ModelConfig, TalkingHead
+
+    torch.manual_seed(0)
+    head = fast_config(64)
+    return TalkingHead(ModelConfig(29, head, head, fast_config(73), fast_config(73), ((-1, -1, -1), (1, 1, 1)), ((-1, -1, 1), (1, 1, 3))))
+
+
+@torch.no_grad()
+def test_frame_codes_is_one_path_for_one_frame_and_for_all() -> None:
+    model = _tiny_head()
+    with torch.no_grad():  # a filter far from the identity, so a wrong neighbourhood shows
+        model.att_net.score.bias.copy_(torch.linspace(-1, 1, 8))
+    windows = torch.randn(20, 16, 29)
+    raw = model.audio_codes(windows)
+    assert not model.smooths_audio
+    torch.testing.assert_close(model.frame_codes(windows), raw)
+    torch.testing.assert_close(model.frame_codes(windows, [7, 3]), raw[[7, 3]])
+    model.set_audio_smoothing(True)
+    every = model.frame_codes(windows)
+    for f in (0, 2, 10, 19):  # the filter over the clamped neighbourhood, the frame at att_len // 2
+        around = raw[[min(max(k, 0), 19) for k in range(f - 4, f + 4)]]
+        torch.testing.assert_close(every[f], model.att_net(around), rtol=1e-6, atol=1e-7)
+        torch.testing.assert_close(model.frame_codes(windows, [f])[0], every[f], rtol=1e-6, atol=1e-7)
+    assert not torch.allclose(every, raw, atol=1e-3)
+
+
+def test_audio_smoothing_is_saved_with_the_model(tmp_path: Path) -> None:
+    from adnerf.run_folder import RunError, load_model_state, scheduled_smoothing
+    from adnerf.train_config import TrainConfig
+
+    model = _tiny_head()
+    model.set_audio_smoothing(True)
+    state = model.state_dict()
+    fresh = _tiny_head()
+    load_model_state(fresh, state, tmp_path / "x.pt", smoothing=False)
+    assert fresh.smooths_audio  # the stored switch wins over the schedule's
+    # A checkpoint from before the model held the switch: the schedule decides.
+    old = {k: v for k, v in state.items() if k != "audio_smoothing"}
+    for step, want in ((60, False), (61, True)):
+        again = _tiny_head()
+        load_model_state(again, old, tmp_path / "x.pt", scheduled_smoothing(TrainConfig(head_iters=100, att_start=0.6), step))
+        assert again.smooths_audio is want
+    with pytest.raises(RunError, match="missing"):
+        load_model_state(_tiny_head(), {k: v for k, v in old.items() if k != "feature_mean"}, tmp_path / "x.pt", False)
 
 
 def test_npy_windows(tmp_path: Path) -> None:

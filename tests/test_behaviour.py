@@ -24,7 +24,7 @@ from adnerf.pose import HeadPose
 from adnerf.render_video import audio_frames, render_frames
 from adnerf.synth import SynthConfig, synthesize
 from adnerf.talking_head import model_config
-from adnerf.train import TrainConfig, _Trainer, load_run, train
+from adnerf.train import TrainConfig, Trainer, load_run, train
 
 SCENE = SynthConfig(seconds=1.6, size=32, voice="formant", seed=5)
 
@@ -82,7 +82,7 @@ def test_training_log_psnr_is_ten_log10_of_the_fine_mse(scene: Path, run: Path) 
 
 def test_stage_one_targets_are_the_frame_on_the_head_and_the_plate_elsewhere(scene: Path, tmp_path: Path) -> None:
     ds = load_dataset(scene)
-    tr = _Trainer(tmp_path, ds, model_config(ds.meta), TrainConfig(), "cpu", progress=False)
+    tr = Trainer(tmp_path, ds, model_config(ds.meta), TrainConfig(), "cpu", progress=False)
     frame = ds.meta.train[0]
     labels = torch.as_tensor(ds.parsing[frame].reshape(-1))
     pix = torch.arange(labels.numel())
@@ -98,7 +98,7 @@ def test_stage_one_targets_are_the_frame_on_the_head_and_the_plate_elsewhere(sce
 
 def test_mouth_rays_are_drawn_around_the_mouth(scene: Path, tmp_path: Path) -> None:
     ds = load_dataset(scene)
-    tr = _Trainer(tmp_path, ds, model_config(ds.meta), TrainConfig(), "cpu", progress=False)
+    tr = Trainer(tmp_path, ds, model_config(ds.meta), TrainConfig(), "cpu", progress=False)
     for frame in ds.meta.train[:5]:
         pix = tr.mouth_pixels(ds.head_pose(frame)).numpy()
         assert pix.size > 0
@@ -198,7 +198,7 @@ def test_the_render_passes_each_frame_its_own_audio_code(scene: Path, run: Path,
     idx = list(ds.meta.test)[:3]
     render_frames(r, ds.features[idx], ds.poses[idx], ds.background.astype(np.float32) / 255.0)
     with torch.no_grad():
-        want = [r.model.frame_code(torch.as_tensor(ds.features[idx]), i, r.smooth_audio) for i in range(len(idx))]
+        want = [r.model.frame_codes(torch.as_tensor(ds.features[idx]), [i])[0] for i in range(len(idx))]
     for got, exp in zip(codes, want):
         torch.testing.assert_close(got, exp)
 

@@ -12,13 +12,15 @@ import torch
 
 from adnerf.blinks import BLINK_GAP, BLINK_SECONDS, blink_track, count_blinks, eye_track
 from adnerf.cli import main
+from adnerf.conditions import EYE_FREQUENCIES, SIGNAL_WIDTHS, FrameCondition, eye_code
 from adnerf.data import load_dataset
 from adnerf.layers import RadianceLayer
+from adnerf.pose import HeadPose
 from adnerf.preprocess.landmarks import eye_aspect_ratio, eye_openness
 from adnerf.readers import EyeReader, exact_frame, eye_boxes
 from adnerf.render_video import render_frames
 from adnerf.synth import HeadModel, SynthConfig, TorsoModel, background_plate, pose_track, render_frame, synthesize
-from adnerf.train import TrainConfig, load_run, train
+from adnerf.train import TrainConfig, Trainer, load_run, train
 
 SCENE = SynthConfig(seconds=2.0, size=48, voice="formant", seed=1)
 CFG = TrainConfig(head_iters=8, torso_iters=4, rays=64, log_every=4)
@@ -115,20 +117,41 @@ def test_training_gives_each_frame_its_own_eye_openness(scene: Path, tmp_path: P
     eye = np.random.default_rng(0).random(SCENE.n_frames).astype(np.float32)  # a different value in every frame
     np.save(data / "eye.npy", eye)
     ds = load_dataset(data)
-    seen: list[tuple[float, np.ndarray]] = []
+    seen: list[tuple[float, np.ndarray, int]] = []
     real = RadianceLayer.render
 
     def spy(self: RadianceLayer, rays, cond, **kw):  # noqa: ANN001, ANN003, ANN202
         if self.name == "head":
-            seen.append((float(cond.extra["eye"][0]), cond.pose.t.numpy().copy()))
+            seen.append((float(cond.extra["eye"][0]), cond.pose.t.numpy().copy(), int(cond.audio[0])))
         return real(self, rays, cond, **kw)
 
     monkeypatch.setattr(RadianceLayer, "render", spy)
+    # An audio code that names its frame, to see whose speech each batch is rendered under.
+    monkeypatch.setattr(Trainer, "code", lambda self, frame: torch.full((self.model.config.audio_dim,), float(frame)))
     train(data, tmp_path / "run", config=CFG, progress=False)
-    assert len(seen) in (CFG.head_iters, 2 * CFG.head_iters)  # with an eye batch per iteration when the clip blinks
-    for value, t in seen:
+    assert len(seen) == 2 * CFG.head_iters  # a frame's batch, then an eye batch, per iteration
+    for k, (value, t, speech) in enumerate(seen):
         frame = int(np.argmin(np.linalg.norm(ds.poses[:, :3, 3] - t, axis=1)))
-        assert frame in ds.meta.train and value == eye[frame]
+        assert frame in ds.meta.train and value == eye[frame] and speech in ds.meta.train
+        if k % 2 == 0:
+            assert speech == frame  # the frame's batch: its own speech
+    # The eye batches: the speech of another random frame (the eyes do not depend on it).
+    assert sum(speech != int(np.argmin(np.linalg.norm(ds.poses[:, :3, 3] - t, axis=1))) for _, t, speech in seen[1::2]) >= CFG.head_iters // 2
+
+
+def test_the_eye_enters_as_a_code_that_is_zero_for_open_eyes() -> None:
+    openness = torch.tensor([[1.0], [0.75], [0.5], [0.25], [0.0]], dtype=torch.float64)
+    codes = eye_code(openness)
+    assert codes.shape == (5, SIGNAL_WIDTHS["eye"]) == (5, 2 * EYE_FREQUENCIES)
+    assert torch.equal(codes[0], torch.zeros(2 * EYE_FREQUENCIES, dtype=torch.float64))  # open: no input at all
+    # Fully closed: sin(k pi / 2) and 1 - cos(k pi / 2) for k = 1..4.
+    torch.testing.assert_close(codes[4], torch.tensor([1.0, 0.0, -1.0, 0.0, 1.0, 2.0, 1.0, 0.0], dtype=torch.float64), atol=1e-12, rtol=0)
+    # Each degree of closure its own direction: the four closed-ish codes are independent (one
+    # number scaled would have rank 1).
+    assert torch.linalg.matrix_rank(codes[1:]) == 4
+    pose = HeadPose(torch.eye(3), torch.zeros(3))
+    cond = FrameCondition(torch.arange(3.0), pose, {"eye": torch.tensor([0.25])})
+    torch.testing.assert_close(cond.vector(("audio", "eye"), torch.float32), torch.cat([torch.arange(3.0), eye_code(torch.tensor([0.25]))]))
 
 
 def test_the_head_reads_the_eye_and_render_blinks_on_command(scene: Path, run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -141,7 +164,7 @@ def test_the_head_reads_the_eye_and_render_blinks_on_command(scene: Path, run: P
     default = render_frames(r, ds.features[idx], ds.poses[idx], plate)
     assert not np.array_equal(opened.frames, shut.frames) and np.array_equal(opened.frames, default.frames)
     cond = r.model.condition(torch.zeros(r.model.config.audio_dim), ds.head_pose(0), 0.25)
-    assert torch.equal(cond.vector(r.model.layers["head"].conditions, torch.float32)[-1:], torch.tensor([0.25]))
+    torch.testing.assert_close(cond.vector(r.model.layers["head"].conditions, torch.float32)[-SIGNAL_WIDTHS["eye"] :], eye_code(torch.tensor([0.25])))
     np.save(tmp_path / "shut.npy", np.zeros(200))
     audio = str(scene / "audio.wav")
     assert main(["render", str(run), "--audio", audio, "-o", str(tmp_path / "a.mp4"), "--blink", str(tmp_path / "shut.npy")]) == 0
@@ -165,11 +188,11 @@ def test_runs_without_eyes_cannot_blink_and_old_scenes_still_train(tmp_path: Pat
 def test_eye_rays_are_drawn_around_both_eyes_and_blinking_frames_more_often(scene: Path, tmp_path: Path) -> None:
     from adnerf.data import EYE_CROP
     from adnerf.talking_head import model_config
-    from adnerf.train import BLINKING, _Trainer
+    from adnerf.train import BLINKING, Trainer
 
     ds = load_dataset(scene)
     assert ds.meta.eyes is not None
-    tr = _Trainer(tmp_path, ds, model_config(ds.meta, eye=True), TrainConfig(blink_frames=1.0), "cpu", progress=False)
+    tr = Trainer(tmp_path, ds, model_config(ds.meta, eye=True), TrainConfig(blink_frames=1.0), "cpu", progress=False)
     frame = ds.meta.train[3]
     pose = ds.head_pose(frame)
     pix = tr.eye_pixels(pose).numpy()
@@ -182,7 +205,7 @@ def test_eye_rays_are_drawn_around_both_eyes_and_blinking_frames_more_often(scen
     # blink_frames = 1: every stage-1 frame is a blinking one; a head without eyes draws no eye rays.
     blinking = set(np.flatnonzero(ds.eye < BLINKING)) & set(ds.meta.train)
     assert blinking and all(tr.pick_frame(blinks=True) in blinking for _ in range(20))
-    plain = _Trainer(tmp_path / "p", ds, model_config(ds.meta), TrainConfig(), "cpu", progress=False)
+    plain = Trainer(tmp_path / "p", ds, model_config(ds.meta), TrainConfig(), "cpu", progress=False)
     assert plain.eye_pixels(pose).numel() == 0 and plain.blinking.numel() == 0
 
 

@@ -202,18 +202,18 @@ def test_render_takes_precomputed_feature_windows(tiny: Path, tiny_run: Path, tm
 
 def test_stage_two_backgrounds_are_the_head_render_where_torso_rays_are_drawn(tiny: Path, tiny_run: Path, tmp_path: Path) -> None:
     from adnerf.talking_head import render_frame
-    from adnerf.train import _Trainer
+    from adnerf.train import Trainer
 
     run = load_run(tiny_run)
     ds = load_dataset(tiny)
-    tr = _Trainer(tmp_path, ds, run.model.config, run.train_config, "cpu", progress=False)
+    tr = Trainer(tmp_path, ds, run.model.config, run.train_config, "cpu", progress=False)
     tr.model.load_state_dict(run.model.state_dict())
     tr.head_step = run.train_config.head_iters
     near, far = tr.model.layers["torso"].crossing(tr.rays)
     in_box = far > near
     assert 0 < in_box.float().mean() < 1
     out = tr.head_renders(in_box)
-    codes = tr.model.all_codes(tr.windows, tr.smooth_audio)
+    codes = tr.model.frame_codes(tr.windows)
     plate = tr.plate.reshape(ds.meta.height, ds.meta.width, 3)
     for f in ds.meta.train[:: max(1, len(ds.meta.train) // 4)]:
         ref = render_frame(tr.model, tr.camera, ds.head_pose(f), codes[f], plate, layers=("head",)).rgb.reshape(-1, 3)

@@ -35,7 +35,7 @@ from .data import SceneMeta, load_dataset
 from .synth import SynthConfig, synthesize
 from .metrics import psnr_from_mse
 from .talking_head import ModelConfig, model_config, render_frame
-from .train import TrainConfig, _Trainer
+from .train import TrainConfig, Trainer
 
 __all__ = [
     "CONFIGS",
@@ -98,7 +98,7 @@ def bench_model_config(meta: SceneMeta, cfg: FieldBenchConfig, eye: bool = False
     return m
 
 
-def _eval_set(tr: _Trainer, generator: torch.Generator) -> list[tuple[int, torch.Tensor]]:
+def _eval_set(tr: Trainer, generator: torch.Generator) -> list[tuple[int, torch.Tensor]]:
     """``EVAL_RAYS_PER_FRAME`` pixels inside the head box of each of ``EVAL_FRAMES`` test frames."""
     test = tr.ds.meta.test or tr.ds.meta.train
     picks = [test[round(i * (len(test) - 1) / max(EVAL_FRAMES - 1, 1))] for i in range(min(EVAL_FRAMES, len(test)))]
@@ -114,14 +114,14 @@ def _eval_set(tr: _Trainer, generator: torch.Generator) -> list[tuple[int, torch
 
 
 @torch.no_grad()
-def _eval_psnr(tr: _Trainer, evalset: list[tuple[int, torch.Tensor]]) -> float:
+def _eval_psnr(tr: Trainer, evalset: list[tuple[int, torch.Tensor]]) -> float:
     """PSNR of the head over the plate along the held-out rays, against the stage-1 target."""
     model = tr.model
     model.eval()
     se, n = 0.0, 0
     for frame, pix in evalset:
         pose = tr.ds.head_pose(frame, device=tr.device)
-        code = model.frame_code(tr.windows, frame, tr.smooth_audio)
+        code = model.frame_codes(tr.windows, [frame])[0]
         out = model.layers["head"].render(tr.rays[pix], tr.condition(frame, code, pose), background=tr.plate[pix])
         target = tr.head_target(frame, pix)
         se += float((out.final.rgb.float().clamp(0, 1) - target).square().sum())
@@ -150,7 +150,7 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
     times = sorted({float(t) for t in checkpoints if 0 < t < budget} | {float(budget)})
     with tempfile.TemporaryDirectory() as tmp:
         tcfg = TrainConfig(head_iters=10**9, checkpoint_every=10**9, log_every=10**9, seed=seed)
-        tr = _Trainer(Path(tmp), ds, mcfg, tcfg, device, progress=False)
+        tr = Trainer(Path(tmp), ds, mcfg, tcfg, device, progress=False)
         evalset = _eval_set(tr, torch.Generator().manual_seed(seed + 1))
         bar = tqdm(total=round(budget), desc=f"bench {cfg.name}", unit="s", disable=not progress, dynamic_ncols=True)
 
@@ -189,7 +189,7 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
         model = tr.model.eval()
         plate = tr.plate.reshape(tr.camera.height, tr.camera.width, 3)
         frames = [f for f, _ in evalset] or ds.meta.train[:1]
-        codes = {f: model.frame_code(tr.windows, f, tr.smooth_audio).detach() for f in frames}
+        codes = dict(zip(frames, model.frame_codes(tr.windows, frames).detach()))
         render_frame(model, tr.camera, ds.head_pose(frames[0], device=device), codes[frames[0]], plate, layers=("head",))
         n_frames, start = 0, time.perf_counter()
         while n_frames < 24 and (n_frames == 0 or time.perf_counter() - start < 10):

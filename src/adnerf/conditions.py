@@ -4,7 +4,8 @@ A :class:`FrameCondition` carries a frame's signals: its audio code, its head po
 named signal (``extra``). A layer lists the signals it reads (:attr:`RadianceLayer.conditions
 <adnerf.layers.RadianceLayer.conditions>`), and :meth:`FrameCondition.vector` concatenates them in
 that order into the one conditioning vector its fields take. The head pose enters as its 9-d
-continuous code (:meth:`~adnerf.pose.HeadPose.code`); every other signal as it is.
+continuous code (:meth:`~adnerf.pose.HeadPose.code`), the eye openness as its code
+(:func:`eye_code`), every other signal as it is.
 
 Adding a condition is adding a signal here (or passing it in ``extra``) and naming it in the layers
 that read it; the renderer, the compositor and the training loop are not touched.
@@ -15,19 +16,40 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
+import math
+
 import torch
 from torch import Tensor
 
 from .fields import POSE_CODE_DIM
 from .pose import HeadPose
 
-__all__ = ["FrameCondition", "SIGNAL_WIDTHS", "signal_width"]
+__all__ = ["EYE_FREQUENCIES", "FrameCondition", "SIGNAL_WIDTHS", "eye_code", "signal_width"]
+
+EYE_FREQUENCIES = 4
 
 # Widths of the signals other than the audio code (whose width is the model's ``audio_dim``).
 SIGNAL_WIDTHS = {
     "pose": POSE_CODE_DIM,  # the head pose's continuous code
-    "eye": 1,  # eye openness: 1 open as usual, 0 closed (a dataset's eye.npy)
+    "eye": 2 * EYE_FREQUENCIES,  # eye openness (a dataset's eye.npy), through eye_code
 }
+
+
+def eye_code(openness: Tensor) -> Tensor:
+    """The code ``(..., 2 * EYE_FREQUENCIES)`` a field reads for eye openness ``(..., 1)``
+    (1 open, 0 closed).
+
+    With ``c = 1 - openness`` the closure and ``k = 1 .. EYE_FREQUENCIES``: ``sin(k pi c / 2)``
+    and ``1 - cos(k pi c / 2)``. All entries are 0 for open eyes, so the open eyes of most frames
+    leave a field's input as it is and the weights that read the code learn the blinks alone; and
+    each degree of closure moves the input in its own direction, which a small MLP needs to draw
+    a lid that moves (a single number only scales one direction: on the demo scene the head then
+    rendered half-closed eyes open, and closed ones only half closed).
+    """
+    c = 1.0 - openness
+    k = torch.arange(1, EYE_FREQUENCIES + 1, dtype=openness.dtype, device=openness.device)
+    angle = (0.5 * math.pi) * c * k
+    return torch.cat([torch.sin(angle), 1.0 - torch.cos(angle)], dim=-1)
 
 
 
@@ -38,7 +60,7 @@ class FrameCondition:
     Attributes:
         audio: Audio code ``(audio_dim,)``.
         pose: The frame's head pose, one ``R (3, 3)``, ``t (3,)`` (canonical to camera).
-        extra: Further named signals, each ``(width,)``.
+        extra: Further named signals, each ``(width,)`` (``"eye"``: the openness, ``(1,)``).
     """
 
     audio: Tensor
@@ -46,7 +68,8 @@ class FrameCondition:
     extra: Mapping[str, Tensor] = field(default_factory=dict)
 
     def signal(self, name: str) -> Tensor:
-        """One signal by name: ``"audio"``, ``"pose"`` (its 9-d code) or a key of ``extra``.
+        """One signal by name: ``"audio"``, ``"pose"`` (its 9-d code), ``"eye"`` (its code,
+        :func:`eye_code`) or another key of ``extra``.
 
         Raises:
             KeyError: No such signal in this frame.
@@ -55,6 +78,8 @@ class FrameCondition:
             return self.audio
         if name == "pose":
             return self.pose.code()
+        if name == "eye" and name in self.extra:
+            return eye_code(self.extra[name])
         if name in self.extra:
             return self.extra[name]
         raise KeyError(f"this frame has no {name!r} signal (it has audio, pose{''.join(', ' + k for k in self.extra)})")

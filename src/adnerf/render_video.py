@@ -178,7 +178,7 @@ def render_frames(
     plate_t = torch.as_tensor(plate, dtype=torch.float32, device=dev)
     t0 = time.perf_counter()
     with torch.no_grad():
-        codes = model.all_codes(torch.as_tensor(windows, device=dev), run.smooth_audio)
+        codes = model.frame_codes(torch.as_tensor(windows, device=dev))
     n = len(windows)
     H, W = camera.height, camera.width
     frames = np.empty((n, H, W, 3), dtype=np.uint8)

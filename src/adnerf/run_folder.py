@@ -92,8 +92,8 @@ class Run:
 
     @property
     def smooth_audio(self) -> bool:
-        """Whether AudioAttNet was on at the end of what was trained."""
-        return self.head_step > self.train_config.att_start * self.train_config.head_iters
+        """Whether AudioAttNet was on at the end of what was trained (the model's own switch)."""
+        return self.model.smooths_audio
 
     @property
     def has_torso(self) -> bool:
@@ -156,9 +156,10 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     ckpt_path = root / "checkpoint.pt"
     ckpt = read_checkpoint(ckpt_path, device)
     model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
-    load_model_state(model, ckpt["model"], ckpt_path)
+    tcfg = TrainConfig.from_dict(doc["train"])
+    load_model_state(model, ckpt["model"], ckpt_path, scheduled_smoothing(tcfg, ckpt["head_step"]))
     model.eval()
-    return Run(root, Path(doc["dataset"]), model, TrainConfig.from_dict(doc["train"]), ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"])
+    return Run(root, Path(doc["dataset"]), model, tcfg, ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"])
 
 
 def check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, root: Path) -> None:
@@ -173,11 +174,23 @@ def check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, r
         )
 
 
-def load_model_state(model: TalkingHead, state: dict, path: Path) -> None:
-    """Load weights, of the layers' layout or the earlier one (:func:`~adnerf.talking_head.migrate_state_dict`);
-    a checkpoint from before occupancy grids existed leaves them unestimated."""
+def scheduled_smoothing(tcfg: TrainConfig, head_step: int) -> bool:
+    """Whether a schedule has switched AudioAttNet on after ``head_step`` finished stage-1 steps
+    (step ``s`` smooths when ``s >= att_start * head_iters``)."""
+    return head_step > tcfg.att_start * tcfg.head_iters
+
+
+def load_model_state(model: TalkingHead, state: dict, path: Path, smoothing: bool) -> None:
+    """Load weights, of the layers' layout or the earlier one (:func:`~adnerf.talking_head.migrate_state_dict`).
+
+    A checkpoint from before occupancy grids existed leaves them unestimated; one from before the
+    model held its audio-smoothing switch gets ``smoothing`` (what its schedule had switched on,
+    :func:`scheduled_smoothing`).
+    """
     missing, unexpected = model.load_state_dict(migrate_state_dict(state), strict=False)
-    missing = [k for k in missing if ".occupancy." not in k]
+    if "audio_smoothing" in missing:
+        model.set_audio_smoothing(smoothing)
+    missing = [k for k in missing if ".occupancy." not in k and k != "audio_smoothing"]
     if missing or unexpected:
         raise RunError(f"{path}: weights do not match the run's model (missing {missing[:3]}, unexpected {unexpected[:3]})")
 

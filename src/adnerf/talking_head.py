@@ -28,7 +28,7 @@ from torch import Tensor, nn
 from .audio import AudioAttNet, AudioNet
 from .cameras import Camera
 from .compositor import Layer, composite_layers
-from .conditions import FrameCondition, signal_width
+from .conditions import SIGNAL_WIDTHS, FrameCondition, signal_width
 from .data import SceneMeta
 from .fields import POSE_CODE_DIM, FieldConfig, RadianceField, check_config_keys, fast_config, paper_config
 from .layers import RadianceLayer
@@ -91,8 +91,9 @@ class ModelConfig:
             space, torso: camera space); 0 turns empty-space skipping off.
         occupancy_threshold: Density (1 / scene unit) below which a cell is empty. At the
             default 0.01 a skipped sample of length 0.15 would have had opacity < 0.0015.
-        eye_dim: 1: the head also reads the frame's eye openness (datasets with ``eye.npy``;
-            blinks on command); 0: it does not (AD-NeRF, and runs made before blinks).
+        eye_dim: The width of the eye openness's code (:func:`~adnerf.conditions.eye_code`) when
+            the head reads it (datasets with ``eye.npy``; blinks on command); 0: it does not
+            (AD-NeRF, and runs made before blinks).
     """
 
     feature_dim: int
@@ -145,7 +146,7 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
     ``"paper"``: AD-NeRF's 8x256 positional-encoding MLPs with 64 + 128 samples per ray.
     ``eye``: the head also reads the eye openness (for a dataset with ``eye.npy``).
     """
-    eye_dim = 1 if eye else 0
+    eye_dim = SIGNAL_WIDTHS["eye"] if eye else 0
     head_cond = audio_dim + eye_dim
     torso_cond = audio_dim + POSE_CODE_DIM
     if preset == "paper":
@@ -223,6 +224,8 @@ class TalkingHead(nn.Module):
         # Per-feature standardisation of the audio windows, fitted on the training frames.
         self.register_buffer("feature_mean", torch.zeros(config.feature_dim))
         self.register_buffer("feature_std", torch.ones(config.feature_dim))
+        # Whether AudioAttNet filters the codes (frame_codes): part of the model, saved with it.
+        self.register_buffer("audio_smoothing", torch.zeros((), dtype=torch.bool))
 
     @property
     def reads_eye(self) -> bool:
@@ -249,33 +252,44 @@ class TalkingHead(nn.Module):
         x = (windows.to(self.feature_mean) - self.feature_mean) / self.feature_std
         return self.audio_net(x)
 
-    def neighbours(self, index: int, n: int, device: torch.device | str | None = None) -> Tensor:
-        """The ``att_len`` frame indices around ``index`` that AudioAttNet filters, clamped to ``[0, n)``.
-
-        ``index`` itself is at position ``att_len // 2``, where AudioAttNet puts its centre.
-        """
+    def neighbours(self, frames: Tensor, n: int) -> Tensor:
+        """The ``att_len`` frame indices ``(F, att_len)`` around each of ``frames (F,)`` that
+        AudioAttNet filters, clamped to ``[0, n)``; each frame itself is at position
+        ``att_len // 2``, where AudioAttNet puts its centre."""
         half = self.config.att_len // 2
-        return torch.arange(index - half, index - half + self.config.att_len, device=device).clamp(0, n - 1)
+        return (frames[:, None] + torch.arange(-half, self.config.att_len - half, device=frames.device)).clamp(0, n - 1)
 
-    def smoothed_code(self, codes: Tensor, index: int) -> Tensor:
-        """AudioAttNet over the ``att_len`` codes around frame ``index`` (clamped at the ends)."""
-        return self.att_net(codes[self.neighbours(index, codes.shape[0], codes.device)])
+    @property
+    def smooths_audio(self) -> bool:
+        """Whether AudioAttNet filters the audio codes (training switches it on at ``att_start``;
+        saved with the weights)."""
+        return bool(self.audio_smoothing)
 
-    def frame_code(self, windows: Tensor, index: int, smooth: bool) -> Tensor:
-        """The audio code ``(audio_dim,)`` of frame ``index`` from all windows ``(N, 16, D)``.
+    def set_audio_smoothing(self, on: bool) -> None:
+        """Switch AudioAttNet's filtering of the audio codes on or off."""
+        self.audio_smoothing.fill_(bool(on))
 
-        With ``smooth``, only the ``att_len`` neighbouring windows are encoded and filtered.
+    def frame_codes(self, windows: Tensor, frames: Tensor | Sequence[int] | None = None, batch: int = 512) -> Tensor:
+        """The audio codes ``(F, audio_dim)`` of ``frames`` (default: every frame) of a clip.
+
+        The one way a frame's code is made, for training (a frame a step) and rendering (every
+        frame): AudioNet encodes the frame's feature window, and once the model smooths
+        (:attr:`smooths_audio`) AudioAttNet filters the codes of its ``att_len`` neighbours
+        (:meth:`neighbours`; clamped at the clip's ends). Only the windows needed are encoded,
+        each once, ``batch`` at a time.
+
+        Args:
+            windows: The clip's feature windows ``(N, 16, D)``, one per frame.
+            frames: Frame indices ``(F,)`` in ``[0, N)``.
+            batch: Windows per AudioNet call.
         """
-        if not smooth:
-            return self.audio_codes(windows[index : index + 1])[0]
-        return self.att_net(self.audio_codes(windows[self.neighbours(index, windows.shape[0], windows.device)]))
-
-    def all_codes(self, windows: Tensor, smooth: bool, batch: int = 512) -> Tensor:
-        """Codes ``(N, audio_dim)`` of every frame (smoothed with AudioAttNet when ``smooth``)."""
-        raw = torch.cat([self.audio_codes(windows[i : i + batch]) for i in range(0, windows.shape[0], batch)])
-        if not smooth:
-            return raw
-        return torch.stack([self.smoothed_code(raw, i) for i in range(raw.shape[0])])
+        n = windows.shape[0]
+        frames = torch.arange(n, device=windows.device) if frames is None else torch.as_tensor(frames, device=windows.device).reshape(-1)
+        rows = self.neighbours(frames, n) if self.smooths_audio else frames[:, None]  # (F, L)
+        need, where = torch.unique(rows, return_inverse=True)
+        raw = torch.cat([self.audio_codes(windows[need[i : i + batch]]) for i in range(0, need.numel(), batch)])
+        codes = raw[where]  # (F, L, audio_dim)
+        return self.att_net(codes) if self.smooths_audio else codes[:, 0]
 
 
 def migrate_state_dict(state: dict) -> dict:

@@ -35,13 +35,13 @@ from .outputs import check_folder_output, ensure_writable
 from .data import EYE_CROP, LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
 from .renderer import RenderOutput
 from .metrics import psnr_from_mse
-from .run_folder import RESUMABLE, Run, RunError, check_same_dataset, load_model_state, load_run, read_checkpoint, read_run_doc, resumed_config, save_atomic, stored_config, write_run
+from .run_folder import RESUMABLE, Run, RunError, check_same_dataset, load_model_state, load_run, read_checkpoint, read_run_doc, resumed_config, save_atomic, scheduled_smoothing, stored_config, write_run
 from .train_config import TrainConfig
 from .conditions import FrameCondition
 from .talking_head import ModelConfig, TalkingHead, mixed_precision, model_config, render_on_plate
 
 # The run folder and the schedule live in their own modules; re-exported for existing imports.
-__all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "load_run", "resumed_config", "stored_config", "train"]
+__all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "Trainer", "load_run", "resumed_config", "stored_config", "train"]
 
 BLINKING = 0.75  # eye openness below which a training frame counts as blinking
 
@@ -86,7 +86,24 @@ def _optimise(parts: list[tuple[RenderOutput, torch.Tensor, torch.Tensor]], mask
     return tuple(ranks.mean([float(loss.detach()), float(fine_mse.detach())]))  # type: ignore[return-value]
 
 
-class _Trainer:
+class Trainer:
+    """A training session of a talking head on a dataset, stepped by its stages.
+
+    :func:`train` drives one through a run folder; ``bench fields`` steps one a few iterations at
+    a time (:meth:`head_stage` with ``max_steps``) and reads its clock (``elapsed``, seconds per
+    stage), counters (``head_step``, ``torso_step``, ``samples``: field evaluations) and tensors
+    (``rays``, ``plate``, ``windows``: on ``device``).
+
+    Args:
+        root: The run folder (checkpoints and the log are written there by the main process).
+        ds: The dataset.
+        mcfg: The model.
+        tcfg: The schedule.
+        device: Where to train.
+        progress: Show progress bars.
+        ranks: This process among the training processes (:mod:`adnerf.distributed`).
+    """
+
     def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool, ranks: Ranks = Ranks()) -> None:
         self.root, self.ds, self.tcfg, self.device, self.ranks = root, ds, tcfg, device, ranks
         self.progress = progress and ranks.main
@@ -139,7 +156,7 @@ class _Trainer:
     def load(self, ckpt: dict) -> None:
         """Continue from checkpoint content (see :func:`read_checkpoint`); the log keeps only the
         lines of the steps the checkpoint holds, so a resumed run logs each step once."""
-        load_model_state(self.model, ckpt["model"], self.root / "checkpoint.pt")
+        load_model_state(self.model, ckpt["model"], self.root / "checkpoint.pt", scheduled_smoothing(self.tcfg, ckpt["head_step"]))
         self.opt_head.load_state_dict(ckpt["opt_head"])
         self.opt_torso.load_state_dict(ckpt["opt_torso"])
         self.generator.set_state(ckpt["generator"].cpu())  # loaded with map_location=device
@@ -211,17 +228,13 @@ class _Trainer:
         inside = ((cols - uv[0]).abs() <= half) & ((rows - uv[1]).abs() <= half)
         return self.pixel_index[inside]
 
-    def code(self, frame: int, smooth: bool) -> torch.Tensor:
-        return self.model.frame_code(self.windows, frame, smooth)
+    def code(self, frame: int) -> torch.Tensor:
+        """Frame ``frame``'s audio code ``(audio_dim,)`` (:meth:`TalkingHead.frame_codes`)."""
+        return self.model.frame_codes(self.windows, [frame])[0]
 
     def condition(self, frame: int, code: torch.Tensor, pose) -> FrameCondition:  # noqa: ANN001
         """Frame ``frame``'s condition: its audio code, head pose and (when the head reads it) eye openness."""
         return self.model.condition(code, pose, None if self.eye is None else self.eye[frame])
-
-    @property
-    def smooth_audio(self) -> bool:
-        """Whether the finished stage-1 iterations have switched AudioAttNet on (as :attr:`Run.smooth_audio`)."""
-        return self.head_step > self.tcfg.att_start * self.tcfg.head_iters
 
     def head_target(self, frame: int, pix: torch.Tensor) -> torch.Tensor:
         """Stage-1 target colours ``(R, 3)`` of pixels ``pix``: the frame on head pixels, the plate elsewhere."""
@@ -276,10 +289,11 @@ class _Trainer:
         self.samples += out.samples_evaluated
         return out, self.head_target(frame, pix), self.is_head[frame, pix]
 
-    def eye_batch(self, smooth: bool) -> tuple[int, torch.Tensor, FrameCondition] | None:
+    def eye_batch(self) -> tuple[int, torch.Tensor, FrameCondition] | None:
         """For heads that blink: ``eye_rays * rays`` more rays around the eyes of a frame drawn
-        among the blinking ones in ``blink_frames`` of the iterations (else among all), so the eye
-        condition is taught without taking rays or frames from the rest of the head; ``None`` for
+        among the blinking ones in ``blink_frames`` of the iterations (else among all), under the
+        audio code of another random frame, so the eye condition is taught without taking rays or
+        frames from the rest of the head, and alone explains the blinks; ``None`` for
         heads without it (no random draw is made then)."""
         if not self.blinking.numel() or self.ds.meta.eyes is None or self.tcfg.eye_rays <= 0:
             return None
@@ -289,7 +303,11 @@ class _Trainer:
         if not eyes.numel():
             return None
         pix = self.pick_rays(eyes, int(round(self.tcfg.eye_rays * self.tcfg.rays)))
-        return frame, pix, self.condition(frame, self.code(frame, smooth), pose)
+        # The speech of another frame: the eyes do not depend on it, and with a few blinks in a
+        # clip a blink's own audio code would name its frame well enough to be learnt in place of
+        # the eye condition (which held-out speech then cannot call up).
+        speech = self.pick_frame()
+        return frame, pix, self.condition(frame, self.code(speech), pose)
 
     def head_stage(self, max_steps: int | None) -> None:
         tcfg = self.tcfg
@@ -298,7 +316,7 @@ class _Trainer:
 
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
-            smooth = step >= tcfg.att_start * tcfg.head_iters
+            self.model.set_audio_smoothing(step >= tcfg.att_start * tcfg.head_iters)
             frame = self.pick_frame()
             pose = self.ds.head_pose(frame, device=self.device)
             near, far = self.model.layers["head"].crossing(self.rays, pose)
@@ -306,10 +324,10 @@ class _Trainer:
             mouth = self.mouth_pixels(pose)
             n_mouth = int(round(tcfg.mouth_rays * tcfg.rays)) if mouth.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
-            cond = self.condition(frame, self.code(frame, smooth), pose)
+            cond = self.condition(frame, self.code(frame), pose)
             self.maybe_update_occupancy("head", step, tcfg.head_iters, cond)
             parts = [self.head_part(frame, pix, cond)]
-            eye_batch = self.eye_batch(smooth)  # heads that blink: rays at the eyes of another frame
+            eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
                 parts.append(self.head_part(*eye_batch))
             return _optimise(parts, tcfg.mask_weight, self.opt_head, self.ranks)
@@ -330,7 +348,7 @@ class _Trainer:
             if cached["head_step"] == self.head_step:
                 return cached["renders"].float()
         self.model.eval()
-        codes = self.model.all_codes(self.windows, self.smooth_audio)
+        codes = self.model.frame_codes(self.windows)
         out = self.plate.expand_as(self.frames).clone()
         for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
             pix = torch.nonzero(in_box | self.is_torso[frame])[:, 0]
@@ -347,7 +365,7 @@ class _Trainer:
         near, far = self.model.layers["torso"].crossing(self.rays)
         backgrounds = self.head_renders(far > near)
         with torch.no_grad():
-            codes = self.model.all_codes(self.windows, self.smooth_audio)
+            codes = self.model.frame_codes(self.windows)
         candidates = torch.nonzero(far > near)[:, 0]
         sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
         self.model.train()
@@ -439,7 +457,7 @@ def train(
     ensure_writable(root)
     devices = ranks.gather(str(device))
     ranks.barrier()  # every process has checked the folder before process 0 writes into it
-    trainer = _Trainer(root, ds, mcfg, tcfg, device, progress, ranks)
+    trainer = Trainer(root, ds, mcfg, tcfg, device, progress, ranks)
     if ckpt is not None:
         trainer.load(ckpt)
     if ranks.main:
