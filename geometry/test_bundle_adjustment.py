@@ -7,9 +7,18 @@ import pytest
 import torch
 
 from adnerf.pose import euler_rotation
-from adnerf.preprocess.bundle import bundle_adjust, ellipsoid_points, reprojection_residuals, residual_jacobians
+from adnerf.preprocess.bundle import (
+    bundle_adjust,
+    ellipsoid_points,
+    reprojection_residuals,
+    residual_jacobians,
+)
 from adnerf.preprocess.check import align_poses
-from adnerf.preprocess.headpose import chain_segments, mean_rotation, triangulate_canonical
+from adnerf.preprocess.headpose import (
+    chain_segments,
+    mean_rotation,
+    triangulate_canonical,
+)
 
 K = (300.0, 310.0, 64.0, 60.0)
 

@@ -10,7 +10,7 @@ from torch.autograd import gradcheck
 
 from adnerf.compositor import composite, over, render_weights
 from adnerf.encodings import PositionalEncoding, TriPlaneEncoding
-from adnerf.fields import HeadField, FieldConfig
+from adnerf.fields import FieldConfig, HeadField
 from adnerf.pose import HeadPose, from_canonical, perturb_pose, to_canonical
 
 D = torch.float64

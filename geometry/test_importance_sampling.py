@@ -6,8 +6,13 @@ import math
 
 import torch
 
-from adnerf.samplers import ImportanceSampler, StratifiedSampler, NearFarBounds, sample_pdf
 from adnerf.rays import RayBundle
+from adnerf.samplers import (
+    ImportanceSampler,
+    NearFarBounds,
+    StratifiedSampler,
+    sample_pdf,
+)
 
 
 def _pdf_case(dtype: torch.dtype):

@@ -6,11 +6,11 @@ import math
 
 import pytest
 import torch
+from kornia.geometry.liegroup import So3
 
 from adnerf.compositor import composite, render_weights
 from adnerf.pose import from_canonical, perturb_pose, rotation_angle, to_canonical
 from adnerf.samplers import ray_aabb, ray_sphere
-from kornia.geometry.liegroup import So3
 
 DENSITIES = [0.0, 1e-12, 1.0, 1e10]
 DELTAS = [1e-12, 1e-3, 1.0, 1e6]

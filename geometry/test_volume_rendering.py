@@ -7,8 +7,13 @@ from typing import Callable
 import pytest
 import torch
 
-from adnerf.analytic import UniformBox, UniformSphere, homogeneous_depth, homogeneous_opacity
-from adnerf.bench import bench_render
+from adnerf.analytic import (
+    UniformBox,
+    UniformSphere,
+    homogeneous_depth,
+    homogeneous_opacity,
+)
+from adnerf.bench.render import bench_render
 from adnerf.cameras import intrinsics_matrix, pixel_rays
 from adnerf.compositor import composite
 from adnerf.rays import RaySamples

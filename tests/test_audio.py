@@ -13,10 +13,17 @@ import numpy as np
 import pytest
 import torch
 
-from adnerf import features as F
+from adnerf.audio import features as F
 from adnerf.audio import AudioAttNet, AudioNet
 from adnerf.cli import main
-from adnerf.io import AudioTrack, MediaError, frame_times, read_audio, read_video, write_video
+from adnerf.io import (
+    AudioTrack,
+    MediaError,
+    frame_times,
+    read_audio,
+    read_video,
+    write_video,
+)
 
 SR = 16000
 
@@ -242,8 +249,8 @@ def test_attention_can_start_near_the_identity() -> None:
     assert paper.max() < 0.4
     assert centred.argmax(dim=-1).eq(4).all() and centred[:, 4].min() > 0.7
     # The frame itself sits where TalkingHead.neighbours puts it.
-    from adnerf.talking_head import ModelConfig, TalkingHead
     from adnerf.fields import fast_config
+    from adnerf.model.talking_head import ModelConfig, TalkingHead
 
     head = fast_config(64)
     model = TalkingHead(ModelConfig(29, head, head, fast_config(73), fast_config(73), ((-1, -1, -1), (1, 1, 1)), ((-1, -1, 1), (1, 1, 3))))
@@ -254,7 +261,7 @@ def test_attention_can_start_near_the_identity() -> None:
 
 def _tiny_head() -> "TalkingHead":  # noqa: F821
     from adnerf.fields import fast_config
-    from adnerf.talking_head import ModelConfig, TalkingHead
+    from adnerf.model.talking_head import ModelConfig, TalkingHead
 
     torch.manual_seed(0)
     head = fast_config(64)
@@ -281,8 +288,8 @@ def test_frame_codes_is_one_path_for_one_frame_and_for_all() -> None:
 
 
 def test_audio_smoothing_is_saved_with_the_model(tmp_path: Path) -> None:
-    from adnerf.run_folder import RunError, load_model_state, scheduled_smoothing
-    from adnerf.train_config import TrainConfig
+    from adnerf.model.run_folder import RunError, load_model_state, scheduled_smoothing
+    from adnerf.model.train_config import TrainConfig
 
     model = _tiny_head()
     model.set_audio_smoothing(True)

@@ -14,17 +14,17 @@ import pytest
 import torch
 from kornia.metrics import psnr as kornia_psnr
 
-from adnerf import render_video
+from adnerf.commands import render_video
 from adnerf.cli import main
-from adnerf.data import LABEL_HEAD, LABEL_TORSO, load_dataset
-from adnerf.evaluate import head_metrics, image_metrics, mouth_boxes
+from adnerf.commands.render_video import audio_frames, render_frames
+from adnerf.evaluation.evaluate import head_metrics, image_metrics, mouth_boxes
 from adnerf.io import AudioTrack, read_video
 from adnerf.metrics import PSNR_CAP_DB, psnr, psnr_from_mse
+from adnerf.model.data import LABEL_HEAD, LABEL_TORSO, load_dataset
+from adnerf.model.talking_head import model_config
+from adnerf.model.train import TrainConfig, Trainer, load_run, train
 from adnerf.pose import HeadPose
-from adnerf.render_video import audio_frames, render_frames
 from adnerf.synth import SynthConfig, synthesize
-from adnerf.talking_head import model_config
-from adnerf.train import TrainConfig, Trainer, load_run, train
 
 SCENE = SynthConfig(seconds=1.6, size=32, voice="formant", seed=5)
 
@@ -115,7 +115,7 @@ def test_mouth_rays_are_drawn_around_the_mouth(scene: Path, tmp_path: Path) -> N
 
 
 def _tone(path: Path, seconds: float = 1.0) -> Path:
-    from adnerf.data import write_wav
+    from adnerf.model.data import write_wav
 
     t = np.arange(int(16000 * seconds)) / 16000.0
     write_wav(path, AudioTrack((0.3 * np.sin(2 * np.pi * 220 * t) * (1 + np.sin(2 * np.pi * 3 * t))).astype(np.float32), 16000))

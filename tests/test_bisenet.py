@@ -10,8 +10,15 @@ import pytest
 import torch
 
 from adnerf.cli import main
-from adnerf.data import LABEL_HEAD, LABEL_TORSO
-from adnerf.preprocess.bisenet import CELEBAMASK_TO_LABEL, IMAGENET_MEAN, IMAGENET_STD, BiSeNet, BiSeNetParser, load_bisenet
+from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
+from adnerf.preprocess.bisenet import (
+    CELEBAMASK_TO_LABEL,
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    BiSeNet,
+    BiSeNetParser,
+    load_bisenet,
+)
 from adnerf.preprocess.parsers import make_parser
 
 

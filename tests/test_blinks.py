@@ -10,17 +10,37 @@ import numpy as np
 import pytest
 import torch
 
-from adnerf.blinks import BLINK_GAP, BLINK_SECONDS, blink_track, count_blinks, eye_track
 from adnerf.cli import main
-from adnerf.conditions import EYE_FREQUENCIES, SIGNAL_WIDTHS, FrameCondition, eye_code
-from adnerf.data import load_dataset
-from adnerf.layers import RadianceLayer
+from adnerf.commands.render_video import render_frames
+from adnerf.evaluation.readers import EyeReader, exact_frame, eye_boxes
+from adnerf.model.blinks import (
+    BLINK_GAP,
+    BLINK_SECONDS,
+    blink_track,
+    blinks_in,
+    count_blinks,
+    eye_track,
+)
+from adnerf.model.conditions import (
+    EYE_FREQUENCIES,
+    SIGNAL_WIDTHS,
+    FrameCondition,
+    eye_code,
+)
+from adnerf.model.data import load_dataset
+from adnerf.model.layers import RadianceLayer
+from adnerf.model.train import TrainConfig, Trainer, load_run, train
 from adnerf.pose import HeadPose
 from adnerf.preprocess.landmarks import eye_aspect_ratio, eye_openness
-from adnerf.readers import EyeReader, exact_frame, eye_boxes
-from adnerf.render_video import render_frames
-from adnerf.synth import HeadModel, SynthConfig, TorsoModel, background_plate, pose_track, render_frame, synthesize
-from adnerf.train import TrainConfig, Trainer, load_run, train
+from adnerf.synth import (
+    HeadModel,
+    SynthConfig,
+    TorsoModel,
+    background_plate,
+    pose_track,
+    render_frame,
+    synthesize,
+)
 
 SCENE = SynthConfig(seconds=2.0, size=48, voice="formant", seed=1)
 CFG = TrainConfig(head_iters=8, torso_iters=4, rays=64, log_every=4)
@@ -185,10 +205,29 @@ def test_runs_without_eyes_cannot_blink_and_old_scenes_still_train(tmp_path: Pat
     assert main(["render", str(run), "--audio", str(data / "audio.wav"), "-o", str(tmp_path / "b.mp4")]) == 0  # auto: nothing to blink
 
 
+def test_a_clip_that_never_blinks_trains_a_head_without_the_eye(scene: Path, tmp_path: Path) -> None:
+    """Like the shared real clip (openness 0.81-1.23, no blink): the eye value would only tell
+    frames apart, so the head does not read it; one blinking training frame is enough to read it."""
+    data = shutil.copytree(scene, tmp_path / "data")
+    ds = load_dataset(data)
+    eye = np.random.default_rng(3).uniform(0.81, 1.23, SCENE.n_frames).astype(np.float32)
+    np.save(data / "eye.npy", eye)
+    assert not blinks_in(eye, ds.meta.train)
+    run = train(data, tmp_path / "still", config=CFG, progress=False)
+    assert not load_run(run).model.reads_eye
+    eye[ds.meta.test[0]] = 0.1  # a blink among the held-out frames only: still nothing to learn
+    assert not blinks_in(eye, ds.meta.train)
+    eye[ds.meta.train[3]] = 0.74  # one training frame below BLINKING
+    assert blinks_in(eye, ds.meta.train) and not blinks_in(None, ds.meta.train)
+    np.save(data / "eye.npy", eye)
+    assert load_run(train(data, tmp_path / "blinks", config=CFG, progress=False)).model.reads_eye
+
+
 def test_eye_rays_are_drawn_around_both_eyes_and_blinking_frames_more_often(scene: Path, tmp_path: Path) -> None:
-    from adnerf.data import EYE_CROP
-    from adnerf.talking_head import model_config
-    from adnerf.train import BLINKING, Trainer
+    from adnerf.model.blinks import BLINKING
+    from adnerf.model.data import EYE_CROP
+    from adnerf.model.talking_head import model_config
+    from adnerf.model.train import Trainer
 
     ds = load_dataset(scene)
     assert ds.meta.eyes is not None

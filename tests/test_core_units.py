@@ -8,7 +8,14 @@ import torch
 from adnerf.compositor import Layer, composite, composite_layers, over
 from adnerf.occupancy import OccupancyGrid
 from adnerf.rays import RayBundle, RaySamples
-from adnerf.samplers import AABBBounds, NearFarBounds, SphereBounds, StratifiedSampler, blur_weights, stratified_edges
+from adnerf.samplers import (
+    AABBBounds,
+    NearFarBounds,
+    SphereBounds,
+    StratifiedSampler,
+    blur_weights,
+    stratified_edges,
+)
 
 
 def _rays(n: int = 5, dtype: torch.dtype = torch.float64) -> RayBundle:

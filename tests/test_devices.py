@@ -16,14 +16,14 @@ import torch
 
 from adnerf.analytic import UniformSphere
 from adnerf.cameras import intrinsics_matrix, pixel_rays
-from adnerf.data import load_dataset
+from adnerf.commands.render_video import render_frames
+from adnerf.model.data import load_dataset
+from adnerf.model.train import TrainConfig, load_run, train
 from adnerf.occupancy import OccupancyGrid
-from adnerf.render_video import render_frames
 from adnerf.renderer import VolumeRenderer
 from adnerf.rng import uniform
 from adnerf.samplers import NearFarBounds, sample_pdf, stratified_edges
 from adnerf.synth import SynthConfig, synthesize
-from adnerf.train import TrainConfig, load_run, train
 
 TINY = SynthConfig(seconds=1.2, size=24, voice="formant", seed=11)
 CFG = TrainConfig(head_iters=8, torso_iters=4, rays=64, log_every=4, checkpoint_every=4, occupancy_start=0.25, occupancy_every=2)

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from adnerf.model.train import TrainConfig, train
 from adnerf.synth import SynthConfig, synthesize
-from adnerf.train import TrainConfig, train
 
 CFG = {"head_iters": 6, "torso_iters": 4, "rays": 128, "checkpoint_every": 5, "log_every": 2, "occupancy_start": 0.3, "occupancy_every": 2}
 

@@ -9,7 +9,14 @@ import torch
 
 from adnerf.analytic import UniformSphere
 from adnerf.cameras import intrinsics_matrix, pixel_rays
-from adnerf.fields import FieldConfig, HeadField, RadianceField, TorsoField, fast_config, paper_config
+from adnerf.fields import (
+    FieldConfig,
+    HeadField,
+    RadianceField,
+    TorsoField,
+    fast_config,
+    paper_config,
+)
 from adnerf.occupancy import OccupancyGrid
 from adnerf.pose import HeadPose
 from adnerf.renderer import VolumeRenderer

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from adnerf.data import LABEL_HEAD, LABEL_TORSO
+from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
 from adnerf.preprocess.landmarks import (
     BROWS,
     EYES,
@@ -24,7 +24,12 @@ from adnerf.preprocess.landmarks import (
     make_face_detector,
     track_faces,
 )
-from adnerf.preprocess.parsing import JAW_MARGIN, layer_check, split_at_landmarks, split_head_torso
+from adnerf.preprocess.parsing import (
+    JAW_MARGIN,
+    layer_check,
+    split_at_landmarks,
+    split_head_torso,
+)
 
 
 @pytest.fixture(scope="module")

@@ -10,12 +10,17 @@ import torch
 from torch import Tensor, nn
 
 from adnerf.cameras import Camera
-from adnerf.conditions import FrameCondition
-from adnerf.data import SceneMeta
 from adnerf.fields import FieldOutput
-from adnerf.layers import RadianceLayer
+from adnerf.model.conditions import FrameCondition
+from adnerf.model.data import SceneMeta
+from adnerf.model.layers import RadianceLayer
+from adnerf.model.talking_head import (
+    TalkingHead,
+    model_config,
+    render_frame,
+    render_on_plate,
+)
 from adnerf.pose import HeadPose, euler_rotation
-from adnerf.talking_head import TalkingHead, model_config, render_frame, render_on_plate
 
 SIZE = 24
 

@@ -12,16 +12,17 @@ import pytest
 import torch
 
 from adnerf.cli import main
-from adnerf.data import LABEL_HEAD, LABEL_TORSO, load_dataset
 from adnerf.io import AudioTrack, MediaError, write_video
-from adnerf.preprocess import PreprocessConfig, PreprocessError, preprocess_video
+from adnerf.model.data import LABEL_HEAD, LABEL_TORSO, load_dataset
 from adnerf.pose import rotation_angle
+from adnerf.preprocess import PreprocessConfig, PreprocessError, preprocess_video
 from adnerf.preprocess.headpose import estimate_head_poses, mean_rotation
 from adnerf.preprocess.parsing import person_hull, split_head_torso
 from adnerf.preprocess.pipeline import _camera_motion
 from adnerf.preprocess.plate import background_plate
 from adnerf.preprocess.tracking import TrackConfig, Tracks, rigid_region, track_points
-from adnerf.synth import SynthConfig, background_plate as synth_background, synthesize
+from adnerf.synth import SynthConfig, synthesize
+from adnerf.synth import background_plate as synth_background
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +130,7 @@ def test_long_clips_are_split_into_overlapping_segments() -> None:
 def test_segmented_pose_matches_the_truth(scene: Path, tmp_path: Path) -> None:
     """The 75-frame clip in three segments of 40 frames: joined, the poses still match the truth
     as loosely as the one-segment solve does at this size."""
-    from adnerf.data import load_dataset
+    from adnerf.model.data import load_dataset
     from adnerf.preprocess.check import align_poses
 
     report = preprocess_video(scene / "video.mp4", tmp_path / "seg", PreprocessConfig(focal=1.33 * 96, pose_segment=40, pose_overlap=10))
@@ -341,7 +342,7 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 0, lms: bool = False) -> Path:
     """Write the synthetic scene as the original AD-NeRF preprocessing would leave it (with
     ``lms``: landmark files whose lip points sit on the true mouth point's image)."""
-    from adnerf.data import load_dataset
+    from adnerf.model.data import load_dataset
     from adnerf.preprocess.adnerf_import import ours_pose_to_adnerf
 
     ds = load_dataset(scene, truth=True)
@@ -370,14 +371,14 @@ def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 
     for name, idx in (("train", meta.train), ("val", meta.test)):
         doc = {"focal_len": fx, "cx": cx - 0.5, "cy": cy - 0.5, "frames": [{"img_id": k + first_id, "aud_id": k + first_id, "transform_matrix": M[k].tolist(), "face_rect": [0, 0, 10, 10]} for k in idx]}
         (root / f"transforms_{name}.json").write_text(json.dumps(doc))
-    from adnerf.data import write_wav
+    from adnerf.model.data import write_wav
 
     write_wav(root / "aud.wav", ds.audio)
     return root
 
 
 def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from adnerf.data import load_dataset
+    from adnerf.model.data import load_dataset
     from adnerf.preprocess.headpose import project_points
 
     src = _adnerf_folder(scene, tmp_path / "obama", lms=True)
@@ -413,7 +414,7 @@ def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path
 
 
 def test_import_adnerf_trims_audio_to_the_first_frame_and_reports_bad_folders(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from adnerf.data import load_dataset
+    from adnerf.model.data import load_dataset
     from adnerf.preprocess.adnerf_import import import_adnerf
 
     src = _adnerf_folder(scene, tmp_path / "late", first_id=5)

@@ -12,14 +12,18 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from adnerf.bench_real import bench_real, plot_mouth_opening
-from adnerf.bench_voices import mouth_follow
+from adnerf.bench.real import bench_real, plot_mouth_opening
+from adnerf.bench.voices import mouth_follow
 from adnerf.cli import main
-from adnerf.evaluate import head_metrics
+from adnerf.evaluation.evaluate import head_metrics
+from adnerf.evaluation.landmark_metrics import (
+    av_offset,
+    landmark_metrics,
+    mouth_opening,
+)
+from adnerf.evaluation.lpips import CHANNELS, AlexFeatures, find_lpips, load_lpips
+from adnerf.evaluation.syncnet import SyncNet
 from adnerf.io import read_video
-from adnerf.landmark_metrics import av_offset, landmark_metrics, mouth_opening
-from adnerf.lpips import CHANNELS, AlexFeatures, find_lpips, load_lpips
-from adnerf.syncnet import SyncNet
 from adnerf.synth import SynthConfig, synthesize
 
 
@@ -187,8 +191,8 @@ def test_landmark_evaluation_of_true_and_delayed_frames(clip: Path, tmp_path: Pa
     """Through the real detector: the true frames as renders give LMD 0 and perfect sync; the true
     frames two frames late (early) give a positive (negative) offset. The cartoon's jaw moves
     smoothly, so over 50 frames the correlation's peak is broad: within a frame of the delay."""
-    from adnerf.data import load_dataset
-    from adnerf.evaluate import landmark_evaluation
+    from adnerf.evaluation.evaluate import landmark_evaluation
+    from adnerf.model.data import load_dataset
     from adnerf.preprocess import PreprocessConfig, preprocess_video
 
     preprocess_video(clip, tmp_path / "data", PreprocessConfig(focal=1.33 * 96))
@@ -201,7 +205,7 @@ def test_landmark_evaluation_of_true_and_delayed_frames(clip: Path, tmp_path: Pa
     assert late["av_offset_frames"] in (1, 2, 3) and early["av_offset_frames"] in (-1, -2, -3)
     assert late["lmd_mouth_px"] > 0 and late["mouth_open_corr"] < same["mouth_open_corr"]
     # SyncNet on the true frames as renders: the same crops, the same scores as the truth's.
-    from adnerf.evaluate import syncnet_evaluation
+    from adnerf.evaluation.evaluate import syncnet_evaluation
 
     torch.manual_seed(1)
     net = SyncNet(64).eval()

@@ -18,8 +18,10 @@ import pytest
 import torch
 
 from adnerf.cli import main
-from adnerf.data import DatasetError, check_poses, load_dataset, write_wav
 from adnerf.io import AudioTrack
+from adnerf.model.data import DatasetError, check_poses, load_dataset, write_wav
+from adnerf.model.layers import RadianceLayer
+from adnerf.model.train import TrainConfig, train
 from adnerf.outputs import (
     OutputError,
     check_file_output,
@@ -27,8 +29,6 @@ from adnerf.outputs import (
     check_frames_folder,
 )
 from adnerf.synth import SynthConfig, synthesize
-from adnerf.layers import RadianceLayer
-from adnerf.train import TrainConfig, train
 
 SMALL = SynthConfig(seconds=1.2, size=24, voice="formant", seed=5)
 SYNTH_ARGS = ["--seconds", "1", "--size", "16", "--voice", "formant"]
@@ -227,8 +227,8 @@ def test_features_and_evaluate_refuse_what_they_used_to_accept(scene: Path, run:
     short = tmp_path / "short.npy"
     np.save(short, windows)
     with pytest.warns(UserWarning, match="10 feature windows but the audio gives 30 frames"):
-        from adnerf.render_video import render_audio_video
-        from adnerf.train import load_run
+        from adnerf.commands.render_video import render_audio_video
+        from adnerf.model.train import load_run
 
         summary = render_audio_video(load_run(run), wav, tmp_path / "s.mp4", features=short)
     assert summary["frames"] == 10 and summary["audio_seconds"] == pytest.approx(10 / SMALL.fps, abs=1e-3)

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from adnerf.espeak import PAUSE, EspeakError, Phoneme, espeak_ready, speak
-from adnerf.features import voiced_loudness
-from adnerf.visemes import jaw_target, jaw_track
+from adnerf.audio.espeak import PAUSE, EspeakError, Phoneme, espeak_ready, speak
+from adnerf.audio.features import voiced_loudness
+from adnerf.audio.visemes import jaw_target, jaw_track
 
 needs_espeak = pytest.mark.skipif(not espeak_ready(), reason="espeak-ng's library is not installed (apt install espeak-ng)")
 
@@ -107,9 +107,9 @@ def test_vowel_opens_the_mouth_in_the_frame_where_it_is_spoken() -> None:
 
 @needs_espeak
 def test_synthetic_scene_jaw_is_the_viseme_track(tmp_path) -> None:
-    from adnerf.data import load_dataset
-    from adnerf.evaluate import mouth_boxes, mouth_darkness
-    from adnerf.landmark_metrics import pearson
+    from adnerf.evaluation.evaluate import mouth_boxes, mouth_darkness
+    from adnerf.evaluation.landmark_metrics import pearson
+    from adnerf.model.data import load_dataset
     from adnerf.synth import SynthConfig, espeak_speech, synthesize
 
     cfg = SynthConfig(seconds=4.0, size=64, seed=3, speaker="en+f3", words_per_minute=170)
@@ -126,7 +126,7 @@ def test_synthetic_scene_jaw_is_the_viseme_track(tmp_path) -> None:
 
 
 def test_formant_scene_keeps_the_loudness_jaw(tmp_path) -> None:
-    from adnerf.data import load_dataset
+    from adnerf.model.data import load_dataset
     from adnerf.synth import SynthConfig, mouth_opening, synthesize
 
     ds = load_dataset(synthesize(tmp_path / "f", SynthConfig(seconds=2.0, size=32, voice="formant")))
@@ -143,9 +143,15 @@ def test_formant_scene_keeps_the_loudness_jaw(tmp_path) -> None:
 
 
 def test_jaw_reader_reads_the_opening_off_exact_renders(tmp_path) -> None:
-    from adnerf.bench_voices import JawReader
-    from adnerf.data import load_dataset
-    from adnerf.synth import HeadModel, SynthConfig, TorsoModel, render_frame, synthesize
+    from adnerf.bench.voices import JawReader
+    from adnerf.model.data import load_dataset
+    from adnerf.synth import (
+        HeadModel,
+        SynthConfig,
+        TorsoModel,
+        render_frame,
+        synthesize,
+    )
 
     ds = load_dataset(synthesize(tmp_path / "s", SynthConfig(seconds=1.0, size=64, voice="formant", seed=1)))
     poses = ds.poses[[0, 12, 24]]

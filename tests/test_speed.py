@@ -10,16 +10,30 @@ from pathlib import Path
 import pytest
 import torch
 
-from adnerf.bench_fields import CONFIGS, _reference_times, bench_fields, bench_model_config, format_fields_table, load_rows, plot_fields
+from adnerf.bench.fields import (
+    CONFIGS,
+    _reference_times,
+    bench_fields,
+    bench_model_config,
+    format_fields_table,
+    load_rows,
+    plot_fields,
+)
 from adnerf.cli import main
-from adnerf.data import load_dataset
 from adnerf.encodings import TriPlaneEncoding
+from adnerf.model.conditions import FrameCondition
+from adnerf.model.data import load_dataset
+from adnerf.model.talking_head import (
+    TalkingHead,
+    migrate_state_dict,
+    mixed_precision,
+    model_config,
+    render_frame,
+)
+from adnerf.model.train import RunError, TrainConfig, load_model_state, train
 from adnerf.pose import HeadPose, euler_rotation
-from adnerf.synth import SynthConfig, synthesize
-from adnerf.conditions import FrameCondition
 from adnerf.samplers import PosedAABBBounds
-from adnerf.talking_head import TalkingHead, migrate_state_dict, mixed_precision, model_config, render_frame
-from adnerf.train import RunError, TrainConfig, load_model_state, train
+from adnerf.synth import SynthConfig, synthesize
 
 TINY = SynthConfig(seconds=1.6, size=32, voice="formant", seed=5)
 
@@ -164,12 +178,12 @@ def test_checkpoints_without_grids_load_and_wrong_weights_fail(tiny: Path) -> No
     model, _ = _model(tiny)
     state = {k: v for k, v in model.state_dict().items() if ".occupancy." not in k}
     fresh, _ = _model(tiny)
-    load_model_state(fresh, state, Path("old.pt"))  # a run from before the grids: they stay unestimated
+    load_model_state(fresh, state, Path("old.pt"), smoothing=False)  # a run from before the grids: they stay unestimated
     assert not fresh.layers["head"].occupancy.estimated
     with pytest.raises(RunError, match="do not match"):
-        load_model_state(fresh, {**state, "stray.weight": torch.zeros(1)}, Path("bad.pt"))
+        load_model_state(fresh, {**state, "stray.weight": torch.zeros(1)}, Path("bad.pt"), smoothing=False)
     with pytest.raises(RunError, match="do not match"):
-        load_model_state(fresh, {k: v for k, v in state.items() if not k.startswith("layers.head.")}, Path("bad.pt"))
+        load_model_state(fresh, {k: v for k, v in state.items() if not k.startswith("layers.head.")}, Path("bad.pt"), smoothing=False)
 
 
 def test_checkpoints_of_the_earlier_layout_load_bit_for_bit(tiny: Path) -> None:
@@ -189,7 +203,7 @@ def test_checkpoints_of_the_earlier_layout_load_bit_for_bit(tiny: Path) -> None:
     with torch.no_grad():
         for p in fresh.parameters():
             p.add_(1.0)  # so that only loading can bring the weights back
-    load_model_state(fresh, old, Path("old.pt"))
+    load_model_state(fresh, old, Path("old.pt"), smoothing=False)
     for key, value in fresh.state_dict().items():
         assert torch.equal(value, new[key]), key
 

@@ -14,7 +14,16 @@ import numpy as np
 import pytest
 import torch
 
-from adnerf.syncnet import CROP_SIZE, MAX_SHIFT, SyncNet, distance_curve, face_crops, load_syncnet, mfcc_16k, sync_scores
+from adnerf.evaluation.syncnet import (
+    CROP_SIZE,
+    MAX_SHIFT,
+    SyncNet,
+    distance_curve,
+    face_crops,
+    load_syncnet,
+    mfcc_16k,
+    sync_scores,
+)
 
 
 def _random_syncnet(embedding: int = 1024) -> SyncNet:

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,13 +12,19 @@ import pytest
 import torch
 
 from adnerf.cli import main
-from adnerf.data import VERSION, DatasetError, load_dataset, write_wav
-from adnerf.demo import check_reused_scene, run_demo
-from adnerf.evaluate import mouth_darkness, evaluate_run, mouth_boxes
+from adnerf.commands.demo import check_reused_scene, run_demo
+from adnerf.commands.render_video import (
+    RenderError,
+    check_speech,
+    load_poses,
+    pingpong,
+    render_frames,
+)
+from adnerf.evaluation.evaluate import evaluate_run, mouth_boxes, mouth_darkness
 from adnerf.io import AudioTrack, read_audio, read_video
-from adnerf.render_video import RenderError, check_speech, load_poses, pingpong, render_frames
+from adnerf.model.data import VERSION, DatasetError, load_dataset, write_wav
+from adnerf.model.train import RunError, TrainConfig, load_run, train
 from adnerf.synth import SynthConfig, synthesize
-from adnerf.train import RunError, TrainConfig, load_run, train
 
 TINY = SynthConfig(seconds=1.6, size=32, voice="formant", seed=3)
 TINY_TRAIN = TrainConfig(head_iters=24, torso_iters=12, rays=128, log_every=4, checkpoint_every=8)
@@ -201,8 +206,8 @@ def test_render_takes_precomputed_feature_windows(tiny: Path, tiny_run: Path, tm
 
 
 def test_stage_two_backgrounds_are_the_head_render_where_torso_rays_are_drawn(tiny: Path, tiny_run: Path, tmp_path: Path) -> None:
-    from adnerf.talking_head import render_frame
-    from adnerf.train import Trainer
+    from adnerf.model.talking_head import render_frame
+    from adnerf.model.train import Trainer
 
     run = load_run(tiny_run)
     ds = load_dataset(tiny)

@@ -12,7 +12,7 @@ what it measured), each with its own time limit:
 2. ``demo``: ``adnerf demo --device cuda``: wall time, training time and the demo's metrics.
 3. ``render``: frames per second of the demo's trained model at 450x450 (head and torso, and head
    alone), steady state, for two ray-chunk sizes (262144 is the GPU default of
-   :func:`adnerf.talking_head.render_chunk`).
+   :func:`adnerf.model.talking_head.render_chunk`).
 4. ``bench_render``: ``adnerf bench render --device cuda`` (quadrature error and time per Mray).
 5. ``fields``: a shortened ``adnerf bench fields --device cuda`` (held-out PSNR against time).
 
@@ -78,9 +78,9 @@ def step_render(args: argparse.Namespace) -> dict:
     import torch
 
     from adnerf.cameras import Camera, intrinsics_matrix
-    from adnerf.data import load_dataset
-    from adnerf.talking_head import render_frame
-    from adnerf.train import load_run
+    from adnerf.model.data import load_dataset
+    from adnerf.model.talking_head import render_frame
+    from adnerf.model.train import load_run
 
     folder = Path(args.work) / "demo"
     run = load_run(folder / "run", args.device)

@@ -2,7 +2,7 @@
 
 A probe, not part of the product: an :class:`adnerf.audio.AudioNet` plus one linear output is
 trained to regress the scene's true mouth opening (``truth/jaw.npy``) from the training frames'
-feature windows (standardised as :class:`adnerf.talking_head.TalkingHead` does), and its Pearson
+feature windows (standardised as :class:`adnerf.model.talking_head.TalkingHead` does), and its Pearson
 correlation and RMS error are printed on the training and the held-out frames. The demo's scene
 length was chosen with it (``docs/ARCHITECTURE.md``).
 
@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from adnerf.audio import AudioNet
-from adnerf.data import load_dataset
+from adnerf.model.data import load_dataset
 
 
 def main() -> None:

@@ -81,9 +81,9 @@ def quickstart() -> nbformat.NotebookNode:
            "The test run executes this notebook at a tiny size (`ADNERF_NOTEBOOK_SMALL=1`); unset it for a "
            "larger run (a few minutes on a laptop CPU)."),
         code("import os\nimport tempfile\nfrom pathlib import Path\n\nimport matplotlib.pyplot as plt\nimport numpy as np\n\n"
-             "from adnerf.data import load_dataset\nfrom adnerf.demo import new_background\n"
-             "from adnerf.evaluate import evaluate_run\nfrom adnerf.render_video import render_frames\n"
-             "from adnerf.synth import SynthConfig, synthesize\nfrom adnerf.train import TrainConfig, load_run, train\n\n"
+             "from adnerf.model.data import load_dataset\nfrom adnerf.commands.demo import new_background\n"
+             "from adnerf.evaluation.evaluate import evaluate_run\nfrom adnerf.commands.render_video import render_frames\n"
+             "from adnerf.synth import SynthConfig, synthesize\nfrom adnerf.model.train import TrainConfig, load_run, train\n\n"
              "small = os.environ.get('ADNERF_NOTEBOOK_SMALL') == '1'\n"
              "synth_cfg = SynthConfig(seconds=2.0, size=40, voice='formant') if small else SynthConfig(seconds=8.0, size=96)\n"
              "train_cfg = TrainConfig(head_iters=40, torso_iters=20, rays=256) if small else TrainConfig(head_iters=1200, torso_iters=500)\n"
@@ -127,7 +127,7 @@ def error_vs_runtime() -> nbformat.NotebookNode:
            "Part 1 draws the saved result of the README's bench run (`docs/bench/fields_cpu.jsonl`). To measure your own "
            "machine: `adnerf bench fields --json --plot fields.png > fields.jsonl` (about 25 minutes on 2 CPU cores)."),
         code("import os\nfrom pathlib import Path\n\nimport matplotlib.pyplot as plt\n\nimport adnerf\n"
-             "from adnerf.bench import bench_render\nfrom adnerf.bench_fields import bench_fields, format_fields_table, load_rows, plot_fields\n\n"
+             "from adnerf.bench.render import bench_render\nfrom adnerf.bench.fields import bench_fields, format_fields_table, load_rows, plot_fields\n\n"
              "small = os.environ.get('ADNERF_NOTEBOOK_SMALL') == '1'\n"
              "saved = Path(adnerf.__file__).resolve().parents[2] / 'docs' / 'bench' / 'fields_cpu.jsonl'\n"
              "print(saved, 'exists' if saved.exists() else 'not found (installed without the source tree)')"),
@@ -176,9 +176,9 @@ def real_clip() -> nbformat.NotebookNode:
            "steps with a training budget and writes the full table (README, *Real footage*)."),
         code("import json\nimport os\nimport tempfile\nfrom pathlib import Path\n\n"
              "import matplotlib.pyplot as plt\nimport numpy as np\nfrom scipy.spatial.transform import Rotation\n\n"
-             "import adnerf\nfrom adnerf.bench_real import resized_video\nfrom adnerf.data import load_dataset\n"
-             "from adnerf.evaluate import evaluate_run, mouth_boxes\nfrom adnerf.preprocess import PreprocessConfig, preprocess_video\n"
-             "from adnerf.synth import SynthConfig, synthesize\nfrom adnerf.train import TrainConfig, load_run, train\n\n"
+             "import adnerf\nfrom adnerf.bench.real import resized_video\nfrom adnerf.model.data import load_dataset\n"
+             "from adnerf.evaluation.evaluate import evaluate_run, mouth_boxes\nfrom adnerf.preprocess import PreprocessConfig, preprocess_video\n"
+             "from adnerf.synth import SynthConfig, synthesize\nfrom adnerf.model.train import TrainConfig, load_run, train\n\n"
              "small = os.environ.get('ADNERF_NOTEBOOK_SMALL') == '1'\nwork = Path(tempfile.mkdtemp())\n"
              "shared = Path(adnerf.__file__).resolve().parents[3] / 'shared' / 'data' / 'talking_head_512.mp4'\n"
              "clip = Path(os.environ.get('ADNERF_REAL_CLIP', shared))\n"

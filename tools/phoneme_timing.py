@@ -1,8 +1,8 @@
 """Are hama's phoneme features late? Measured against espeak-ng's own phoneme timings.
 
 Isolated words (pauses between them) are spoken by espeak-ng, whose library reports when each
-phoneme starts (:mod:`adnerf.espeak`); hama's per-frame non-blank probability (1 - p(blank)) is
-computed on the same audio (:func:`adnerf.features.phoneme_logprobs`, feature ``k`` at ``k * 20``
+phoneme starts (:mod:`adnerf.audio.espeak`); hama's per-frame non-blank probability (1 - p(blank)) is
+computed on the same audio (:func:`adnerf.audio.features.phoneme_logprobs`, feature ``k`` at ``k * 20``
 ms). For each word, the first frame with non-blank probability above 0.5 is compared with the
 word's first phoneme, and the last such frame with the end of its sound.
 
@@ -14,8 +14,8 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-from adnerf.espeak import PAUSE, speak
-from adnerf.features import FEATURE_RATE, MODEL_RATE, _hama_model, phoneme_logprobs, resample
+from adnerf.audio.espeak import PAUSE, speak
+from adnerf.audio.features import FEATURE_RATE, MODEL_RATE, _hama_model, phoneme_logprobs, resample
 from adnerf.io import AudioTrack
 
 WORDS = "father map ball open ocean apple eagle umbrella mother table water sun garden yellow window pocket".split()

@@ -10,11 +10,26 @@ grid, fields and the conditions.FrameCondition signals it reads) composited over
 """
 
 from .cameras import Camera, intrinsics_matrix, pixel_rays, rays_through_pixels
-from .compositor import Composite, Layer, composite, composite_layers, over, render_weights
-from .conditions import FrameCondition
+from .compositor import (
+    Composite,
+    Layer,
+    composite,
+    composite_layers,
+    over,
+    render_weights,
+)
 from .encodings import PositionalEncoding, TriPlaneEncoding
-from .fields import FieldConfig, FieldOutput, HeadField, RadianceField, TorsoField, fast_config, paper_config
-from .layers import RadianceLayer
+from .fields import (
+    FieldConfig,
+    FieldOutput,
+    HeadField,
+    RadianceField,
+    TorsoField,
+    fast_config,
+    paper_config,
+)
+from .model.conditions import FrameCondition
+from .model.layers import RadianceLayer
 from .occupancy import OccupancyGrid
 from .pose import HeadPose, from_canonical, perturb_pose, to_canonical
 from .rays import RayBundle, RaySamples

@@ -107,7 +107,7 @@ def _emit(rows: list[dict], table: str, as_json: bool) -> None:
 def _cmd_bench_render(args: argparse.Namespace) -> int:
     import torch
 
-    from .bench import bench_render, format_table, rows_as_dicts
+    from .bench.render import bench_render, format_table, rows_as_dicts
 
     rows = bench_render(args.samples, size=args.size, repeats=args.repeats, device=_device(args.device), dtype=getattr(torch, args.dtype), sigma=args.sigma)
     _emit(rows_as_dicts(rows), format_table(rows), args.json)
@@ -115,7 +115,7 @@ def _cmd_bench_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_fields(args: argparse.Namespace) -> int:
-    from .bench_fields import bench_fields, format_fields_table, plot_fields
+    from .bench.fields import bench_fields, format_fields_table, plot_fields
 
     try:
         rows = bench_fields(
@@ -138,7 +138,7 @@ def _cmd_bench_fields(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_real(args: argparse.Namespace) -> int:
-    from .bench_real import bench_real, plot_mouth_opening
+    from .bench.real import bench_real, plot_mouth_opening
 
     try:
         row = bench_real(
@@ -175,7 +175,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_voices(args: argparse.Namespace) -> int:
-    from .bench_voices import bench_voices, format_voices_table
+    from .bench.voices import bench_voices, format_voices_table
 
     try:
         result = bench_voices(
@@ -196,7 +196,7 @@ def _cmd_bench_voices(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_features(args: argparse.Namespace) -> int:
-    from .bench import bench_features
+    from .bench.render import bench_features
     from .io import MediaError
 
     try:
@@ -216,7 +216,13 @@ def _cmd_features(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from .features import MODEL_RATE, FeatureError, FeatureSpec, save_npy_atomic, speech_windows
+    from .audio.features import (
+        MODEL_RATE,
+        FeatureError,
+        FeatureSpec,
+        save_npy_atomic,
+        speech_windows,
+    )
     from .io import MediaError, frame_times, probe, read_audio
     from .outputs import check_file_output
 
@@ -247,13 +253,13 @@ def _cmd_features(args: argparse.Namespace) -> int:
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions whose message is for the user (bad input), printed without a traceback."""
-    from .data import DatasetError
-    from .features import FeatureError
+    from .audio.features import FeatureError
+    from .commands.render_video import RenderError
     from .io import MediaError
+    from .model.data import DatasetError
+    from .model.run_folder import RunError
     from .outputs import OutputError
-    from .render_video import RenderError
     from .preprocess.pipeline import PreprocessError
-    from .run_folder import RunError
 
     return (DatasetError, FeatureError, MediaError, OutputError, PreprocessError, RenderError, RunError)
 
@@ -261,11 +267,9 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 def _cmd_synth(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from .audio.espeak import EspeakError, check_voice
     from .outputs import check_folder_output
-    from .synth import SynthConfig, synthesize
-
-    from .espeak import EspeakError, check_voice
-    from .synth import espeak_available
+    from .synth import SynthConfig, espeak_available, synthesize
 
     cfg = SynthConfig(seconds=args.seconds, size=args.size, seed=args.seed, voice=args.voice, speaker=args.speaker, words_per_minute=args.wpm, mouth=args.mouth, features=args.features, fps=args.fps)
     try:
@@ -311,8 +315,8 @@ def _cmd_check_preprocess(args: argparse.Namespace) -> int:
 def _train_config(args: argparse.Namespace):
     """The schedule: ``--config`` keys, then ``--amp`` and ``--iters``, over the defaults (a new
     run) or over the run's stored schedule (``--resume``), so a resume changes only what is given."""
-    from .run_folder import RunError, stored_config
-    from .train_config import TrainConfig
+    from .model.run_folder import RunError, stored_config
+    from .model.train_config import TrainConfig
 
     doc: object = {}
     if args.config:
@@ -344,7 +348,7 @@ def _train_config(args: argparse.Namespace):
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .train import train
+    from .model.train import train
 
     cfg = _train_config(args)
     root = train(args.dataset, args.output, stage=args.stage, config=cfg, device=_device(args.device), resume=args.resume)
@@ -379,8 +383,8 @@ def _cmd_import_adnerf(args: argparse.Namespace) -> int:
 def _cmd_render(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .render_video import check_render_outputs, render_audio_video
-    from .run_folder import load_run
+    from .commands.render_video import check_render_outputs, render_audio_video
+    from .model.run_folder import load_run
 
     if not args.output.endswith(".mp4"):
         raise CliError(f"{args.output}: the output must be an .mp4 file")
@@ -420,12 +424,11 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .data import load_dataset
-    from .evaluate import evaluate_run
-    from .run_folder import load_run
-
-    from .lpips import lpips_if_available
-    from .syncnet import load_syncnet
+    from .evaluation.evaluate import evaluate_run
+    from .evaluation.lpips import lpips_if_available
+    from .evaluation.syncnet import load_syncnet
+    from .model.data import load_dataset
+    from .model.run_folder import load_run
 
     device = _device(args.device)
     try:
@@ -448,7 +451,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from .commands.demo import run_demo
     from .outputs import OutputError
 
     out = Path(args.output)

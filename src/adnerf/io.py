@@ -10,7 +10,7 @@
 Timing convention: all times are seconds on the container's clock. Audio is returned together
 with ``audio_start``, the time of its first sample; the AAC encoder's priming delay is removed
 by the decoder through the mp4 edit list, and any remaining offset shows up in ``audio_start``,
-which :mod:`adnerf.features` uses to align audio windows with frame timestamps.
+which :mod:`adnerf.audio.features` uses to align audio windows with frame timestamps.
 
 Every failure raises :class:`MediaError` naming the file and the problem.
 """

@@ -21,7 +21,7 @@ class Shard:
     """A generator whose draws are for a batch split over ``count`` processes along its first
     dimension: each process draws the whole batch's numbers and keeps its part ``index``, so the
     generators of all processes stay in step and the parts together are exactly the draw a single
-    process makes (multi-process training, :mod:`adnerf.train`).
+    process makes (multi-process training, :mod:`adnerf.model.train`).
 
     Attributes:
         generator: The generator every process holds in the same state.

@@ -11,17 +11,17 @@ dataset is exactly what a radiance field rendered with our cameras can reproduce
 * a jaw: the lower face rotates about a hinge behind the mouth by an angle proportional to the
   mouth opening, and a dark mouth interior painted at the lips grows with it;
 * eyelids: skin-coloured lids close over both eyes from the top with a dark lash line at their
-  edge, in blinks at random times independent of the speech (:func:`adnerf.blinks.blink_track`: one
+  edge, in blinks at random times independent of the speech (:func:`adnerf.model.blinks.blink_track`: one
   every 2-6 s, 0.2 s long), with the eye openness of every frame as exact truth;
 * a torso (neck and shoulders wearing the photograph's orange suit) in camera space, whose smaller
   motion is a fixed function of the head pose (so a field conditioned on the pose can learn it);
 * a static background (``skimage.data.rocket()``), a smooth random head pose track, and
 * an audio track: real synthetic speech from espeak-ng (its library, which also reports when each
-  phoneme is spoken; :mod:`adnerf.espeak`) in any of its voices and rates, or, where espeak-ng is
+  phoneme is spoken; :mod:`adnerf.audio.espeak`) in any of its voices and rates, or, where espeak-ng is
   missing, speech-like sound (glottal pulses through vowel formants, bursts and pauses).
 
 The jaw follows *what is said*, not how loud: with espeak-ng speech the opening of each frame is
-the viseme track of the phonemes being spoken (:mod:`adnerf.visemes`: closed lips for p / b / m,
+the viseme track of the phonemes being spoken (:mod:`adnerf.audio.visemes`: closed lips for p / b / m,
 wide open for "ah", smoothed as articulators move), so the same sentences in another voice or at
 another speed have their own exact truth. Formant sound has no phonemes; its jaw opens with the
 normalised loudness of the voiced band (150-1000 Hz), as ``mouth="loudness"`` does for any audio.
@@ -38,13 +38,20 @@ import cv2
 import numpy as np
 import trimesh
 
-from .blinks import blink_track
-from .data import LABEL_HEAD, LABEL_TORSO, SceneMeta, Truth, save_dataset, tail_split
-from .espeak import PAUSE, Phoneme, espeak_ready, speak
-from .features import FeatureSpec, resample, speech_windows, voiced_loudness
+from .audio.espeak import PAUSE, Phoneme, espeak_ready, speak
+from .audio.features import FeatureSpec, resample, speech_windows, voiced_loudness
+from .audio.visemes import jaw_track
 from .io import AudioTrack, write_video
+from .model.blinks import blink_track
+from .model.data import (
+    LABEL_HEAD,
+    LABEL_TORSO,
+    SceneMeta,
+    Truth,
+    save_dataset,
+    tail_split,
+)
 from .outputs import check_folder_output
-from .visemes import jaw_track
 
 __all__ = ["SynthConfig", "Speech", "HeadModel", "TorsoModel", "background_plate", "blink_track", "eye_centres", "espeak_speech", "jaw_opening", "render_frame", "speech_audio", "mouth_opening", "pose_track", "synthesize"]
 
@@ -94,12 +101,12 @@ class SynthConfig:
         speaker: espeak-ng voice of the speech (``"en"``, ``"en+f3"`` ...).
         words_per_minute: Speaking rate of the espeak-ng speech.
         mouth: What opens the jaw: ``"visemes"`` (the phonemes being spoken, from espeak-ng's
-            timings; see :mod:`adnerf.visemes`), ``"loudness"`` (the voiced band's loudness) or
+            timings; see :mod:`adnerf.audio.visemes`), ``"loudness"`` (the voiced band's loudness) or
             ``"auto"`` (visemes for espeak-ng speech, loudness for formant sound).
         features: Audio feature kind stored with the dataset (see :class:`FeatureSpec`).
         test_fraction: Fraction of frames, at the end of the clip, held out for testing.
         max_yaw: Amplitude of the head's yaw in degrees (pitch and roll are smaller).
-        blinks: Whether the eyes blink (:func:`adnerf.blinks.blink_track`); off: always open.
+        blinks: Whether the eyes blink (:func:`adnerf.model.blinks.blink_track`); off: always open.
     """
 
     seconds: float = 18.0
@@ -198,7 +205,7 @@ def formant_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0) -> np
 
 
 def espeak_available() -> bool:
-    """Whether espeak-ng's library can speak here (see :mod:`adnerf.espeak`)."""
+    """Whether espeak-ng's library can speak here (see :mod:`adnerf.audio.espeak`)."""
     return espeak_ready()
 
 
@@ -226,7 +233,7 @@ def espeak_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0, *, spe
         seconds: Length of the audio.
         rate: Sample rate of the result.
         seed: Seed of the sentence order and the pauses.
-        speaker: espeak-ng voice (``"en"``, ``"en+f3"`` ...; see :func:`adnerf.espeak.speak`).
+        speaker: espeak-ng voice (``"en"``, ``"en+f3"`` ...; see :func:`adnerf.audio.espeak.speak`).
         words_per_minute: Speaking rate.
         sentences: What is said, repeated as needed.
     """
@@ -278,7 +285,7 @@ def jaw_opening(speech: Speech, times: np.ndarray, mouth: str = "auto") -> tuple
 
 
 def mouth_opening(samples: np.ndarray, rate: int, times: np.ndarray, window: float = 0.06) -> np.ndarray:
-    """The loudness-driven jaw: :func:`adnerf.features.voiced_loudness` (the voiced band's RMS
+    """The loudness-driven jaw: :func:`adnerf.audio.features.voiced_loudness` (the voiced band's RMS
     around each time, normalised by its 98th percentile over the clip, in [0, 1])."""
     return voiced_loudness(samples, rate, times, window)
 
@@ -532,7 +539,7 @@ def _to_u8(x: np.ndarray) -> np.ndarray:
 
 
 def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, progress: Callable[[str, int, int], None] | None = None, overwrite: bool = False) -> Path:
-    """Build a synthetic talking-head dataset (see :mod:`adnerf.data` for the layout).
+    """Build a synthetic talking-head dataset (see :mod:`adnerf.model.data` for the layout).
 
     Args:
         out_dir: Dataset folder to create.

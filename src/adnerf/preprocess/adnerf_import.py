@@ -52,9 +52,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
-from ..features import load_npy_windows
+from ..audio.features import load_npy_windows
 from ..io import AudioTrack, MediaError, read_audio
+from ..model.data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
 from ..outputs import check_folder_output
 from .landmarks import eye_centres_px, eye_openness, mouth_centres
 from .pipeline import PreprocessError, scene_bounds

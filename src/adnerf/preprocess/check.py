@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import load_dataset
-from ..landmark_metrics import pearson
+from ..evaluation.landmark_metrics import pearson
 from ..metrics import psnr
+from ..model.data import load_dataset
 from .headpose import align_poses, project_points
 from .parsing import layer_check
 from .pipeline import LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN
@@ -70,10 +70,10 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
         A dict of figures, the bars, and ``passed`` per bar.
 
     Raises:
-        adnerf.data.DatasetError: A folder is not a dataset, the truth folder has no ``truth/``, or
+        adnerf.model.data.DatasetError: A folder is not a dataset, the truth folder has no ``truth/``, or
             the two have different frame counts or sizes.
     """
-    from ..data import DatasetError
+    from ..model.data import DatasetError
 
     est = load_dataset(dataset, truth=False)
     ref = load_dataset(truth)

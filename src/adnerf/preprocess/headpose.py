@@ -14,11 +14,10 @@ from typing import Callable
 import cv2
 import numpy as np
 import torch
-
 from kornia.geometry.camera import project_points as kornia_project
 
 from ..cameras import intrinsics_matrix
-from ..data import LABEL_HEAD
+from ..model.data import LABEL_HEAD
 from ..pose import rotation_angle
 from .bundle import bundle_adjust, ellipsoid_points
 from .tracking import Tracks

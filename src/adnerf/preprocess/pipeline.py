@@ -5,7 +5,7 @@ so that a re-run after a failure or a kill redoes only the steps that did not fi
 settings changed):
 
 1. ``decode``   frames and audio (PyAV); checks length and audio presence.
-2. ``features`` per-frame audio feature windows (:mod:`adnerf.features`).
+2. ``features`` per-frame audio feature windows (:mod:`adnerf.audio.features`).
 3. ``parse``    background / head / torso label maps (:mod:`adnerf.preprocess.parsing`), a
                 person in each frame, camera-motion check.
 4. ``face``     face box and 68 landmarks per frame (:mod:`.landmarks`, dlib by default; searched
@@ -42,8 +42,16 @@ import cv2
 import numpy as np
 
 from ..atomic import atomic_path
-from ..data import LABEL_HEAD, LABEL_TORSO, DatasetError, SceneMeta, save_dataset, tail_split, write_wav
 from ..io import AudioTrack, MediaError, read_audio, read_video
+from ..model.data import (
+    LABEL_HEAD,
+    LABEL_TORSO,
+    DatasetError,
+    SceneMeta,
+    save_dataset,
+    tail_split,
+    write_wav,
+)
 from ..outputs import OutputError, check_folder_output
 from .headpose import project_points
 from .landmarks import NOSE_BASE, eye_centres_px, eye_openness, mouth_centres
@@ -260,7 +268,7 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
 
 
 def _step_features(work: _Work, config: PreprocessConfig, bar: Bar) -> None:
-    from ..features import FeatureSpec, speech_windows
+    from ..audio.features import FeatureSpec, speech_windows
 
     times = work.load("times")
     if config.features == "none":

@@ -21,7 +21,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..data import LABEL_HEAD
+from ..model.data import LABEL_HEAD
 
 __all__ = ["FLOWS", "TrackConfig", "Tracks", "dense_flow", "rigid_region", "track_points", "extend_tracks"]
 

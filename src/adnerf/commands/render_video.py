@@ -20,14 +20,20 @@ import cv2
 import numpy as np
 import torch
 
-from .data import DatasetError, SceneMeta, check_poses
-from .blinks import count_blinks, eye_track
-from .features import FEATURE_KINDS, MODEL_RATE, FeatureSpec, load_npy_windows, speech_windows
-from .io import AudioTrack, MediaError, read_audio, write_video
-from .outputs import check_file_output, check_frames_folder
-from .pose import HeadPose
-from .talking_head import FrameRender, render_frame
-from .run_folder import Run
+from ..audio.features import (
+    FEATURE_KINDS,
+    MODEL_RATE,
+    FeatureSpec,
+    load_npy_windows,
+    speech_windows,
+)
+from ..io import AudioTrack, MediaError, read_audio, write_video
+from ..model.blinks import count_blinks, eye_track
+from ..model.data import DatasetError, SceneMeta, check_poses
+from ..model.run_folder import Run
+from ..model.talking_head import FrameRender, render_frame
+from ..outputs import check_file_output, check_frames_folder
+from ..pose import HeadPose
 
 __all__ = ["RenderError", "check_render_outputs", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
 
@@ -95,7 +101,7 @@ def load_poses(path: str | Path, n: int) -> np.ndarray:
 
 
 def _checked_poses(poses: np.ndarray, where: str) -> np.ndarray:
-    """``poses`` after the dataset loader's rigidity checks (:func:`adnerf.data.check_poses`)."""
+    """``poses`` after the dataset loader's rigidity checks (:func:`adnerf.model.data.check_poses`)."""
     try:
         check_poses(poses, where)
     except DatasetError as exc:
@@ -226,7 +232,7 @@ def render_audio_video(
     """Render the run saying the audio of ``audio_path`` and write an mp4 with that audio.
 
     A run whose head reads the eye openness blinks as ``blink`` says
-    (:func:`adnerf.blinks.eye_track`: ``"auto"`` natural blinks, ``"none"`` eyes open, or an
+    (:func:`adnerf.model.blinks.eye_track`: ``"auto"`` natural blinks, ``"none"`` eyes open, or an
     ``.npy`` of one value per frame); other runs cannot blink and refuse a file.
 
     The audio's feature windows are computed with the run's extractor, or read from ``features``

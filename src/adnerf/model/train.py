@@ -13,9 +13,9 @@ opacities against the parsing mask of the layer being trained.
 Stage 2 (``torso``) freezes the head and the audio encoders and trains the torso fields on the full
 frames, with the stage-1 head rendered over the plate as the torso's background.
 
-Training writes a run folder (:mod:`adnerf.run_folder` describes it and reads it back), with a
+Training writes a run folder (:mod:`adnerf.model.run_folder` describes it and reads it back), with a
 checkpoint every ``checkpoint_every`` iterations and at the end of each stage. The schedule is
-:class:`adnerf.train_config.TrainConfig`.
+:class:`adnerf.model.train_config.TrainConfig`.
 """
 
 from __future__ import annotations
@@ -29,21 +29,48 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
-from .atomic import atomic_path
-from .distributed import Ranks, init_ranks
-from .outputs import check_folder_output, ensure_writable
-from .data import EYE_CROP, LABEL_HEAD, LABEL_TORSO, MOUTH_CROP, TalkingHeadDataset, load_dataset
-from .renderer import RenderOutput
-from .metrics import psnr_from_mse
-from .run_folder import RESUMABLE, Run, RunError, check_same_dataset, load_model_state, load_run, read_checkpoint, read_run_doc, resumed_config, save_atomic, scheduled_smoothing, stored_config, write_run
-from .train_config import TrainConfig
+from ..atomic import atomic_path
+from ..metrics import psnr_from_mse
+from ..outputs import check_folder_output, ensure_writable
+from ..renderer import RenderOutput
+from .blinks import BLINKING, blinks_in
 from .conditions import FrameCondition
-from .talking_head import ModelConfig, TalkingHead, mixed_precision, model_config, render_on_plate
+from .data import (
+    EYE_CROP,
+    LABEL_HEAD,
+    LABEL_TORSO,
+    MOUTH_CROP,
+    TalkingHeadDataset,
+    load_dataset,
+)
+from .distributed import Ranks, init_ranks
+from .run_folder import (
+    RESUMABLE,
+    Run,
+    RunError,
+    check_same_dataset,
+    load_model_state,
+    load_run,
+    read_checkpoint,
+    read_run_doc,
+    resumed_config,
+    save_atomic,
+    scheduled_smoothing,
+    stored_config,
+    write_run,
+)
+from .talking_head import (
+    ModelConfig,
+    TalkingHead,
+    mixed_precision,
+    model_config,
+    render_on_plate,
+)
+from .train_config import TrainConfig
 
 # The run folder and the schedule live in their own modules; re-exported for existing imports.
 __all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "Trainer", "load_run", "resumed_config", "stored_config", "train"]
 
-BLINKING = 0.75  # eye openness below which a training frame counts as blinking
 
 
 class _Schedule:
@@ -101,7 +128,7 @@ class Trainer:
         tcfg: The schedule.
         device: Where to train.
         progress: Show progress bars.
-        ranks: This process among the training processes (:mod:`adnerf.distributed`).
+        ranks: This process among the training processes (:mod:`adnerf.model.distributed`).
     """
 
     def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool, ranks: Ranks = Ranks()) -> None:
@@ -403,7 +430,7 @@ def train(
     """Train (or resume training) a talking head on a dataset.
 
     Args:
-        dataset: Dataset folder (see :mod:`adnerf.data`).
+        dataset: Dataset folder (see :mod:`adnerf.model.data`).
         run_dir: Run folder to create (or to resume).
         stage: ``"head"``, ``"torso"`` or ``"all"`` (head, then torso).
         config: Schedule; on resume, ``None`` keeps the stored one, and a given one may differ
@@ -445,7 +472,8 @@ def train(
             raise RunError(f"{root}: a run already exists there; pass --resume to continue it or choose another folder")
         check_folder_output(root, "run", inputs=[dataset], flag=None)
         tcfg = config or TrainConfig()
-        mcfg = model_config(ds.meta, tcfg.preset, eye=ds.eye is not None)  # type: ignore[arg-type]
+        # The head reads the eye openness when the clip blinks; else it carries nothing to learn.
+        mcfg = model_config(ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train))  # type: ignore[arg-type]
     tcfg.validate()
     if mcfg.feature_dim != ds.meta.feature_dim:
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")

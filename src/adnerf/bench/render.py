@@ -14,10 +14,10 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from .analytic import UniformSphere
-from .cameras import intrinsics_matrix, pixel_rays
-from .renderer import VolumeRenderer
-from .samplers import NearFarBounds
+from ..analytic import UniformSphere
+from ..cameras import intrinsics_matrix, pixel_rays
+from ..renderer import VolumeRenderer
+from ..samplers import NearFarBounds
 
 __all__ = ["RenderBenchRow", "bench_features", "bench_render", "format_table"]
 
@@ -159,8 +159,8 @@ def bench_features(media: str | None = None, seconds: float = 60.0, repeats: int
     """
     import numpy as np
 
-    from .features import FeatureSpec, extract_features
-    from .io import AudioTrack, read_audio
+    from ..audio.features import FeatureSpec, extract_features
+    from ..io import AudioTrack, read_audio
 
     if media is not None:
         audio = read_audio(media)

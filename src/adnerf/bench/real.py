@@ -10,14 +10,14 @@ Steps, each timed (the times go into the result):
    the budget from the measured speed of a short probe (55% of the budget for the head, 45% for
    the torso, the demo's proportions).
 4. **evaluate**: the held-out tail rendered with its own audio and poses, and measured
-   (:func:`adnerf.evaluate.evaluate_run` with landmarks: PSNR / SSIM on the full frame, the head
+   (:func:`adnerf.evaluation.evaluate.evaluate_run` with landmarks: PSNR / SSIM on the full frame, the head
    label and the mouth crop; LMD; mouth-opening correlation and audio-visual offset; LPIPS where
    weights are on this machine).
 5. **sheet**: a contact sheet of true and rendered held-out frames with their mouths enlarged.
 6. **drive** (with ``drive``): other speech (another speaker, another language) drives the run
    over the held-out poses (written as ``driven_<audio name>.mp4`` in the work folder). No true frames exist for it, so the rendered inner-lip opening (dlib
    landmarks) is compared with the driving audio's own speech activity (the voiced band's
-   loudness, :func:`adnerf.features.voiced_loudness`): their correlation and the shift that
+   loudness, :func:`adnerf.audio.features.voiced_loudness`): their correlation and the shift that
    maximises it (> 0: the mouth is late). The clip's own audio gets the same measure as the
    reference: over every frame with preprocessing's landmarks, and over the held-out frames for
    the true frames and for the render.
@@ -47,7 +47,7 @@ def resized_video(video: str | Path, size: int | None, folder: Path) -> tuple[Pa
     """The clip with its longer side ``size`` pixels (even sizes; ``None``: the clip itself),
     written once into ``folder`` and reused; returns its path and ``{width, height, clip_frames,
     fps, source_size}``."""
-    from .io import AudioTrack, frame_times, probe, read_video, write_video
+    from ..io import AudioTrack, frame_times, probe, read_video, write_video
 
     src = Path(video)
     meta = probe(src)  # no decoding: a cached copy is reused without reading the clip's frames
@@ -74,7 +74,7 @@ def _probe_seconds_per_iteration(dataset: Path, folder: Path, device: str, seed:
     """Training seconds per head iteration, from a throwaway run of ``steps`` iterations (removed
     afterwards; it lies in the benchmark's own work folder). Measured before empty-space skipping
     starts, so it errs slow and the fitted schedule ends inside the budget."""
-    from .train import TrainConfig, train
+    from ..model.train import TrainConfig, train
 
     probe = folder / "probe_run"
     shutil.rmtree(probe, ignore_errors=True)
@@ -91,8 +91,8 @@ def _probe_seconds_per_iteration(dataset: Path, folder: Path, device: str, seed:
 
 def _sheet(path: Path, ds, frames: list[int], rendered: np.ndarray, count: int = 5) -> Path:
     """True and rendered held-out frames, with their mouth crops enlarged beside them."""
-    from .demo import contact_sheet
-    from .evaluate import mouth_boxes
+    from ..commands.demo import contact_sheet
+    from ..evaluation.evaluate import mouth_boxes
 
     picks = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)
     boxes = mouth_boxes(ds, [frames[k] for k in picks])
@@ -114,24 +114,24 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
         ds: Its dataset (poses, plate).
         audio_path: The driving speech.
         video: Where to write the rendered clip with that speech (an mp4), or ``None``.
-        syncnet: A :class:`~adnerf.syncnet.SyncNet` to score the driven clip against the driving
+        syncnet: A :class:`~adnerf.evaluation.syncnet.SyncNet` to score the driven clip against the driving
             speech (LSE-D / LSE-C need no truth, so they judge speech the person never said), or
             ``None``.
 
     Returns:
         ``audio``, ``seconds``, ``frames``, ``landmarks_found``, ``video`` and
-        :func:`~adnerf.bench_voices.mouth_follow`'s figures of the lip opening against the speech
+        :func:`~adnerf.bench.voices.mouth_follow`'s figures of the lip opening against the speech
         activity (``None`` when landmarks are found in fewer than half of
         the frames); with ``syncnet`` (and 25 frames per second) also its scores.
     """
-    from .data import LABEL_HEAD
-    from .bench_voices import mouth_follow
-    from .features import voiced_loudness
-    from .io import AudioTrack, read_audio, write_video
-    from .landmark_metrics import mouth_opening
-    from .preprocess.landmarks import DlibFaceDetector, track_faces
-    from .render_video import audio_frames, pingpong, render_frames
-    from .syncnet import SYNCNET_FPS, face_crops, sync_scores
+    from ..audio.features import voiced_loudness
+    from ..commands.render_video import audio_frames, pingpong, render_frames
+    from ..evaluation.landmark_metrics import mouth_opening
+    from ..evaluation.syncnet import SYNCNET_FPS, face_crops, sync_scores
+    from ..io import AudioTrack, read_audio, write_video
+    from ..model.data import LABEL_HEAD
+    from ..preprocess.landmarks import DlibFaceDetector, track_faces
+    from .voices import mouth_follow
 
     audio = read_audio(audio_path, sample_rate=16000)
     fps = ds.meta.fps
@@ -186,7 +186,7 @@ def bench_real(
         work: Folder for the cached video, dataset and run (``<stem>_<size>_<cut>/`` inside).
         lpips_backbone: AlexNet weights for LPIPS (default: the torch hub cache's, if there).
         lpips_linear: LPIPS linear layers (default: the installed ``lpips`` package's, if any).
-        syncnet: SyncNet checkpoint for LSE-D / LSE-C (:mod:`adnerf.syncnet`; none: "no weights").
+        syncnet: SyncNet checkpoint for LSE-D / LSE-C (:mod:`adnerf.evaluation.syncnet`; none: "no weights").
         seed: Training seed.
         iterations: ``(head, torso)`` iterations instead of the schedule fitted to ``minutes``
             (the probe's speed depends on the machine's load; comparisons want equal schedules).
@@ -197,12 +197,12 @@ def bench_real(
     Returns:
         The metrics, the settings, the iteration counts and the seconds of each step.
     """
-    from .data import load_dataset
-    from .evaluate import evaluate_run
-    from .lpips import lpips_if_available
-    from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
-    from .syncnet import load_syncnet
-    from .train import TrainConfig, load_run, train
+    from ..evaluation.evaluate import evaluate_run
+    from ..evaluation.lpips import lpips_if_available
+    from ..evaluation.syncnet import load_syncnet
+    from ..model.data import load_dataset
+    from ..model.train import TrainConfig, load_run, train
+    from ..preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
     sync = load_syncnet(syncnet, device) if syncnet is not None else None  # a bad file fails before hours of work
     if not minutes > 0 or not math.isfinite(minutes):
@@ -256,9 +256,9 @@ def bench_real(
 
     driven: list[dict] = []
     if drive:
-        from .bench_voices import mouth_follow
-        from .features import voiced_loudness
-        from .landmark_metrics import mouth_opening
+        from ..audio.features import voiced_loudness
+        from ..evaluation.landmark_metrics import mouth_opening
+        from .voices import mouth_follow
 
         t0 = time.perf_counter()
         every, test = np.arange(ds.meta.n_frames), list(ds.meta.test)

@@ -6,7 +6,7 @@ processes, backend, devices), ``background.png`` (the dataset's plate), ``checkp
 optimisers, random generator, finished steps and training seconds; written atomically),
 ``log.jsonl`` (one JSON object per logged iteration) and ``head_renders.pt`` (the cached stage-1
 renders stage 2 trains against). :func:`load_run` gives a :class:`Run`; training
-(:mod:`adnerf.train`) is the only writer.
+(:mod:`adnerf.model.train`) is the only writer.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from .atomic import atomic_path
+from ..atomic import atomic_path
 from .data import TalkingHeadDataset
 from .talking_head import ModelConfig, TalkingHead, migrate_state_dict
 from .train_config import TrainConfig
@@ -181,7 +181,7 @@ def scheduled_smoothing(tcfg: TrainConfig, head_step: int) -> bool:
 
 
 def load_model_state(model: TalkingHead, state: dict, path: Path, smoothing: bool) -> None:
-    """Load weights, of the layers' layout or the earlier one (:func:`~adnerf.talking_head.migrate_state_dict`).
+    """Load weights, of the layers' layout or the earlier one (:func:`~adnerf.model.talking_head.migrate_state_dict`).
 
     A checkpoint from before occupancy grids existed leaves them unestimated; one from before the
     model held its audio-smoothing switch gets ``smoothing`` (what its schedule had switched on,

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .rng import Shard
+from ..rng import Shard
 
 __all__ = ["Ranks", "init_ranks"]
 

@@ -4,9 +4,9 @@
   pixels, SSIM on the head label's box) and on a square crop around the mouth (the canonical mouth
   point of the dataset projected with each frame's pose; side ``mouth_crop`` scene units).
 * With ``landmarks``: LMD, the inner-lip opening's correlation between render and truth and the
-  audio-visual offset (:mod:`adnerf.landmark_metrics`), from the dlib landmarks of both.
-* With an :class:`~adnerf.lpips.LPIPS` model: LPIPS on full frames.
-* With a :class:`~adnerf.syncnet.SyncNet` model: LSE-D, LSE-C and SyncNet's offset of the renders
+  audio-visual offset (:mod:`adnerf.evaluation.landmark_metrics`), from the dlib landmarks of both.
+* With an :class:`~adnerf.evaluation.lpips.LPIPS` model: LPIPS on full frames.
+* With a :class:`~adnerf.evaluation.syncnet.SyncNet` model: LSE-D, LSE-C and SyncNet's offset of the renders
   against the dataset's audio, and the same scores of the true frames (``*_true``), the value a
   perfect render would get (:func:`syncnet_evaluation`).
 * The mouth opening seen in an image: the mean darkness of the mouth crop (luminance 0.5 and
@@ -26,16 +26,22 @@ import numpy as np
 import torch
 from kornia.metrics import ssim
 
-from .data import LABEL_HEAD, MOUTH_CROP, DatasetError, SceneMeta, TalkingHeadDataset
+from ..commands.render_video import RenderedClip, render_frames
+from ..metrics import psnr
+from ..model.data import (
+    LABEL_HEAD,
+    MOUTH_CROP,
+    DatasetError,
+    SceneMeta,
+    TalkingHeadDataset,
+)
+from ..model.run_folder import Run
+from ..pose import HeadPose
 from .landmark_metrics import pearson
-from .metrics import psnr
-from .pose import HeadPose
-from .render_video import RenderedClip, render_frames
-from .run_folder import Run
 
 if TYPE_CHECKING:
+    from ..preprocess.landmarks import FaceTrack
     from .lpips import LPIPS
-    from .preprocess.landmarks import FaceTrack
     from .syncnet import SyncNet
 
 __all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at", "syncnet_evaluation"]
@@ -108,18 +114,18 @@ def head_metrics(pred: np.ndarray, target: np.ndarray, labels: np.ndarray) -> tu
 
 def true_faces(ds: TalkingHeadDataset, frames: list[int]) -> "FaceTrack":
     """dlib's faces in the dataset's frames ``frames`` (searched around the true head label)."""
-    from .preprocess.landmarks import DlibFaceDetector, track_faces
+    from ..preprocess.landmarks import DlibFaceDetector, track_faces
 
     return track_faces(ds.frames[frames], DlibFaceDetector(), ds.parsing[frames])
 
 
 def landmark_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.ndarray, true: "FaceTrack | None" = None) -> dict:
-    """Landmark metrics (:func:`adnerf.landmark_metrics.landmark_metrics`) of rendered frames,
+    """Landmark metrics (:func:`adnerf.evaluation.landmark_metrics.landmark_metrics`) of rendered frames,
     from dlib's landmarks on them and on the true frames (:func:`true_faces`, or ``true`` when
     already found). Frames where the detector misses a face take interpolated landmarks; their
     counts are reported, and with a face in fewer than half of the frames the metrics are ``None``."""
+    from ..preprocess.landmarks import DlibFaceDetector, track_faces
     from .landmark_metrics import landmark_metrics, mouth_opening
-    from .preprocess.landmarks import DlibFaceDetector, track_faces
 
     true = true if true is not None else true_faces(ds, frames)
     pred = track_faces(rendered, DlibFaceDetector(), ds.parsing[frames])
@@ -131,7 +137,7 @@ def landmark_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.
 
 
 def syncnet_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.ndarray, model: "SyncNet", true: "FaceTrack | None" = None) -> dict:
-    """SyncNet's scores (:func:`adnerf.syncnet.sync_scores`) of rendered frames and of the true
+    """SyncNet's scores (:func:`adnerf.evaluation.syncnet.sync_scores`) of rendered frames and of the true
     ones, against the dataset's audio under them.
 
     Both are cropped around the same smoothed dlib face boxes of the true frames (``true``, or
@@ -143,7 +149,7 @@ def syncnet_evaluation(ds: TalkingHeadDataset, frames: list[int], rendered: np.n
         true frames; or ``{"syncnet": reason}`` when the clip cannot be scored (not 25 frames per
         second, frames not consecutive, no face found).
     """
-    from .features import resample
+    from ..audio.features import resample
     from .syncnet import SAMPLE_RATE, SYNCNET_FPS, face_crops, sync_scores
 
     if abs(ds.meta.fps - SYNCNET_FPS) > 1e-6:
@@ -167,7 +173,7 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip,
         frames: Its frame indices that ``clip`` renders.
         clip: The rendered frames.
         landmarks: Also the landmark metrics (dlib on renders and truth).
-        lpips: Also LPIPS with this model (:func:`adnerf.lpips.load_lpips`).
+        lpips: Also LPIPS with this model (:func:`adnerf.evaluation.lpips.load_lpips`).
         syncnet: Also SyncNet's LSE-D / LSE-C with this model (:func:`syncnet_evaluation`).
     """
     gt = ds.frames[frames]
@@ -208,7 +214,7 @@ _SAME_SCENE = ("width", "height", "intrinsics", "fps", "feature_kind", "feature_
 
 
 def check_matches_run(run: Run, ds: TalkingHeadDataset) -> None:
-    """Raise :class:`~adnerf.data.DatasetError` unless ``ds`` has the camera (size, intrinsics),
+    """Raise :class:`~adnerf.model.data.DatasetError` unless ``ds`` has the camera (size, intrinsics),
     frame rate and audio features the run was trained with."""
     found = {k: getattr(ds.meta, k) for k in _SAME_SCENE}
     differ = [f"{k} {run.meta[k]!r} vs {found[k]!r}" for k in _SAME_SCENE if json.loads(json.dumps(found[k])) != run.meta.get(k)]

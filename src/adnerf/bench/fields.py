@@ -30,12 +30,13 @@ from typing import Sequence
 
 import torch
 
-from .allocator import tune_allocator
-from .data import SceneMeta, load_dataset
-from .synth import SynthConfig, synthesize
-from .metrics import psnr_from_mse
-from .talking_head import ModelConfig, model_config, render_frame
-from .train import TrainConfig, Trainer
+from ..allocator import tune_allocator
+from ..metrics import psnr_from_mse
+from ..model.blinks import blinks_in
+from ..model.data import SceneMeta, load_dataset
+from ..model.talking_head import ModelConfig, model_config, render_frame
+from ..model.train import TrainConfig, Trainer
+from ..synth import SynthConfig, synthesize
 
 __all__ = [
     "CONFIGS",
@@ -61,7 +62,7 @@ class FieldBenchConfig:
     Attributes:
         name: Short name (``--configs``).
         description: What it is.
-        preset: Field preset of :func:`~adnerf.talking_head.model_config`.
+        preset: Field preset of :func:`~adnerf.model.talking_head.model_config`.
         occupancy: Empty-space skipping with occupancy grids.
         fine: Hierarchical sampling with a fine field. Without it, one field (the fine field's
             architecture) is evaluated at as many stratified samples as both passes had.
@@ -146,7 +147,7 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
     from tqdm.auto import tqdm
 
     ds = load_dataset(dataset, truth=False)
-    mcfg = bench_model_config(ds.meta, cfg, eye=ds.eye is not None)
+    mcfg = bench_model_config(ds.meta, cfg, eye=blinks_in(ds.eye, ds.meta.train))
     times = sorted({float(t) for t in checkpoints if 0 < t < budget} | {float(budget)})
     with tempfile.TemporaryDirectory() as tmp:
         tcfg = TrainConfig(head_iters=10**9, checkpoint_every=10**9, log_every=10**9, seed=seed)
@@ -324,7 +325,9 @@ def plot_fields(rows: list[dict], path: str | Path | None = None, ax=None):  # n
         The matplotlib figure.
     """
     if ax is None:
-        from matplotlib.figure import Figure  # no pyplot: no global state, no GUI backend
+        from matplotlib.figure import (
+            Figure,  # no pyplot: no global state, no GUI backend
+        )
 
         fig = Figure(figsize=(6.4, 4.2), dpi=110)
         ax = fig.subplots()

@@ -33,8 +33,8 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
-from .atomic import atomic_path
-from .io import AudioTrack, MediaError
+from ..atomic import atomic_path
+from ..io import AudioTrack, MediaError
 
 __all__ = [
     "FEATURE_RATE",

@@ -43,10 +43,10 @@ import cv2
 import numpy as np
 import torch
 
-from .cameras import Camera, intrinsics_matrix
-from .io import AudioTrack, MediaError, read_audio
-from .outputs import check_folder_output
-from .pose import HeadPose
+from ..cameras import Camera, intrinsics_matrix
+from ..io import AudioTrack, MediaError, read_audio
+from ..outputs import check_folder_output
+from ..pose import HeadPose
 
 __all__ = ["FORMAT", "VERSION", "DatasetError", "check_poses", "SceneMeta", "Truth", "TalkingHeadDataset", "load_dataset", "save_dataset"]
 
@@ -75,7 +75,7 @@ class SceneMeta:
         head_aabb: Head box in canonical space, ``((x, y, z)_min, (x, y, z)_max)``.
         torso_aabb: Torso box in camera space.
         mouth: Mouth centre in canonical space ``(x, y, z)`` (the mouth crop of evaluation).
-        feature_kind: Audio feature extractor (see :class:`adnerf.features.FeatureSpec`).
+        feature_kind: Audio feature extractor (see :class:`adnerf.audio.features.FeatureSpec`).
         feature_dim: Width ``D`` of the feature windows.
         n_frames: Number of frames ``N``.
         train: Training frame indices.

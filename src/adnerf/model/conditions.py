@@ -2,7 +2,7 @@
 
 A :class:`FrameCondition` carries a frame's signals: its audio code, its head pose, and any further
 named signal (``extra``). A layer lists the signals it reads (:attr:`RadianceLayer.conditions
-<adnerf.layers.RadianceLayer.conditions>`), and :meth:`FrameCondition.vector` concatenates them in
+<adnerf.model.layers.RadianceLayer.conditions>`), and :meth:`FrameCondition.vector` concatenates them in
 that order into the one conditioning vector its fields take. The head pose enters as its 9-d
 continuous code (:meth:`~adnerf.pose.HeadPose.code`), the eye openness as its code
 (:func:`eye_code`), every other signal as it is.
@@ -13,16 +13,15 @@ that read it; the renderer, the compositor and the training loop are not touched
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
-
-import math
 
 import torch
 from torch import Tensor
 
-from .fields import POSE_CODE_DIM
-from .pose import HeadPose
+from ..fields import POSE_CODE_DIM
+from ..pose import HeadPose
 
 __all__ = ["EYE_FREQUENCIES", "FrameCondition", "SIGNAL_WIDTHS", "eye_code", "signal_width"]
 

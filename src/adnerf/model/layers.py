@@ -1,6 +1,6 @@
 """Radiance layers: a field with its own space, box, samples, occupancy grid and conditions.
 
-A talking-head frame is a stack of layers over a background plate (:mod:`adnerf.talking_head`
+A talking-head frame is a stack of layers over a background plate (:mod:`adnerf.model.talking_head`
 builds AD-NeRF's two). A :class:`RadianceLayer` owns everything that differs between them:
 
 - its **space**: ``canonical`` (the head's frame: camera rays are moved into it once per frame
@@ -10,7 +10,7 @@ builds AD-NeRF's two). A :class:`RadianceLayer` owns everything that differs bet
 - its **occupancy grid** (empty-space skipping, in its space);
 - its coarse and fine **fields** (:class:`~adnerf.fields.RadianceField` or anything called as
   ``field(positions, directions, condition)``);
-- the **conditions** it reads from a :class:`~adnerf.conditions.FrameCondition`, concatenated
+- the **conditions** it reads from a :class:`~adnerf.model.conditions.FrameCondition`, concatenated
   in order into its fields' conditioning vector.
 
 Rays given to a layer are camera rays; the ``t`` values it returns (depth) are the camera rays'
@@ -25,14 +25,14 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from .compositor import Composite
+from ..compositor import Composite
+from ..fields import FieldOutput
+from ..occupancy import OccupancyGrid
+from ..pose import HeadPose, directions_to_canonical
+from ..rays import RayBundle
+from ..renderer import RenderOutput, VolumeRenderer
+from ..samplers import AABBBounds
 from .conditions import FrameCondition
-from .fields import FieldOutput
-from .occupancy import OccupancyGrid
-from .pose import HeadPose, directions_to_canonical
-from .rays import RayBundle
-from .renderer import RenderOutput, VolumeRenderer
-from .samplers import AABBBounds
 
 __all__ = ["RadianceLayer", "SPACES"]
 
@@ -61,7 +61,7 @@ class RadianceLayer(nn.Module):
         aabb: ``(min, max)`` corners of its box in its space.
         samples: ``(coarse, fine)`` samples per ray; fine 0 turns the fine pass off.
         space: ``"canonical"`` or ``"camera"``.
-        conditions: Signal names of :class:`~adnerf.conditions.FrameCondition` its fields read.
+        conditions: Signal names of :class:`~adnerf.model.conditions.FrameCondition` its fields read.
         occupancy_resolution: Cells per axis of its occupancy grid; 0: no grid.
         occupancy_threshold: Density (1 / scene unit) below which a cell is empty.
     """

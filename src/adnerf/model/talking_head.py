@@ -1,6 +1,6 @@
 """The talking-head model: audio encoders and a stack of radiance layers over a plate.
 
-AD-NeRF's model is two :class:`~adnerf.layers.RadianceLayer` s, back to front:
+AD-NeRF's model is two :class:`~adnerf.model.layers.RadianceLayer` s, back to front:
 
 - ``head``: canonical space (camera rays are moved into the head's frame by the frame's pose),
   conditioned on the audio code;
@@ -25,15 +25,22 @@ from typing import Literal, Sequence
 import torch
 from torch import Tensor, nn
 
-from .audio import AudioAttNet, AudioNet
-from .cameras import Camera
-from .compositor import Layer, composite_layers
+from ..audio.nets import AudioAttNet, AudioNet
+from ..cameras import Camera
+from ..compositor import Layer, composite_layers
+from ..fields import (
+    POSE_CODE_DIM,
+    FieldConfig,
+    RadianceField,
+    check_config_keys,
+    fast_config,
+    paper_config,
+)
+from ..pose import HeadPose
+from ..rays import RayBundle
 from .conditions import SIGNAL_WIDTHS, FrameCondition, signal_width
 from .data import SceneMeta
-from .fields import POSE_CODE_DIM, FieldConfig, RadianceField, check_config_keys, fast_config, paper_config
 from .layers import RadianceLayer
-from .pose import HeadPose
-from .rays import RayBundle
 
 __all__ = [
     "FrameRender",
@@ -91,7 +98,7 @@ class ModelConfig:
             space, torso: camera space); 0 turns empty-space skipping off.
         occupancy_threshold: Density (1 / scene unit) below which a cell is empty. At the
             default 0.01 a skipped sample of length 0.15 would have had opacity < 0.0015.
-        eye_dim: The width of the eye openness's code (:func:`~adnerf.conditions.eye_code`) when
+        eye_dim: The width of the eye openness's code (:func:`~adnerf.model.conditions.eye_code`) when
             the head reads it (datasets with ``eye.npy``; blinks on command); 0: it does not
             (AD-NeRF, and runs made before blinks).
     """

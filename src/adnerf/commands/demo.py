@@ -18,12 +18,12 @@ from typing import Callable
 
 import numpy as np
 
-from .data import DatasetError, SceneMeta, load_dataset, tail_split
-from .evaluate import evaluate_run
-from .io import write_video
+from ..evaluation.evaluate import evaluate_run
+from ..io import write_video
+from ..model.data import DatasetError, SceneMeta, load_dataset, tail_split
+from ..model.train import TrainConfig, load_run, train
+from ..synth import SynthConfig, synthesize
 from .render_video import render_frames
-from .synth import SynthConfig, synthesize
-from .train import TrainConfig, load_run, train
 
 __all__ = ["DEMO_SYNTH", "DEMO_TRAIN", "check_reused_scene", "contact_sheet", "run_demo"]
 
@@ -48,11 +48,11 @@ def new_background(height: int, width: int) -> np.ndarray:
 
 
 def check_reused_scene(meta: SceneMeta, config: SynthConfig, where: Path, has_eye: bool = True) -> None:
-    """Raise :class:`~adnerf.data.DatasetError` if the scene in ``where`` is not the one ``config``
+    """Raise :class:`~adnerf.model.data.DatasetError` if the scene in ``where`` is not the one ``config``
     makes (length, size, frame rate, held-out frames, what drives the jaw, whether it blinks:
     ``has_eye``, the dataset has ``eye.npy``), e.g. one left by an older demo: its figures would be
     reported under this demo's settings."""
-    from .synth import espeak_available
+    from ..synth import espeak_available
 
     n = config.n_frames
     _, test = tail_split(n, config.test_fraction)
@@ -102,7 +102,7 @@ def blinks_on_command(run, ds, test: list[int], plate: np.ndarray, seed: int = 1
     """Blink the held-out frames on command and read the eyes back.
 
     The held-out poses and audio are rendered with a commanded eye-openness track (natural blinks,
-    closer together: :data:`DEMO_BLINK_GAP`); :class:`~adnerf.readers.EyeReader` reads the eye
+    closer together: :data:`DEMO_BLINK_GAP`); :class:`~adnerf.evaluation.readers.EyeReader` reads the eye
     openness off the renders and off the scene rendered exactly with the same command.
 
     Returns:
@@ -113,10 +113,10 @@ def blinks_on_command(run, ds, test: list[int], plate: np.ndarray, seed: int = 1
     """
     import cv2
 
-    from .blinks import blink_track, count_blinks
-    from .landmark_metrics import pearson
-    from .readers import EyeReader, exact_frame
-    from .synth import HeadModel, TorsoModel
+    from ..evaluation.landmark_metrics import pearson
+    from ..evaluation.readers import EyeReader, exact_frame
+    from ..model.blinks import blink_track, count_blinks
+    from ..synth import HeadModel, TorsoModel
 
     fps = ds.meta.fps
     command = blink_track(np.arange(len(test)) / fps, seed, gap=DEMO_BLINK_GAP).astype(np.float32)

@@ -1,6 +1,6 @@
 """``adnerf bench voices``: does a face learned from one voice follow another?
 
-The synthetic scene's jaw follows the phonemes being spoken (:mod:`adnerf.visemes`), so the same
+The synthetic scene's jaw follows the phonemes being spoken (:mod:`adnerf.audio.visemes`), so the same
 sentences spoken by other espeak-ng voices, or faster, come with their own exact mouth truth.
 
 1. **train**: one synthetic scene spoken by the training voice (``en``, 150 words/min), stored
@@ -28,7 +28,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .readers import JawReader, exact_frame
+from ..evaluation.readers import JawReader, exact_frame
 
 __all__ = ["DRIVE_SENTENCES", "DRIVING_VOICES", "TRAINING_VOICE", "JawReader", "Voice", "bench_voices", "format_voices_table", "mouth_follow"]
 
@@ -70,7 +70,7 @@ DRIVING_VOICES = (
 def mouth_follow(rendered: np.ndarray, truth: np.ndarray, max_shift: int = 5) -> dict:
     """How well a rendered mouth signal follows the truth: ``corr`` (Pearson, no shift),
     ``offset`` (frames; > 0: the render is late) and ``corr_at_offset`` (the best shift's)."""
-    from .landmark_metrics import av_offset, pearson
+    from ..evaluation.landmark_metrics import av_offset, pearson
 
     corr = pearson(rendered, truth)
     shift, best = av_offset(np.asarray(rendered, float), np.asarray(truth, float), max_shift)
@@ -79,8 +79,8 @@ def mouth_follow(rendered: np.ndarray, truth: np.ndarray, max_shift: int = 5) ->
 
 
 def _scene(folder: Path, kind: str, seconds: float, size: int, seed: int, log: Callable[[str], None]) -> Path:
-    from .data import read_meta
-    from .synth import SynthConfig, synthesize
+    from ..model.data import read_meta
+    from ..synth import SynthConfig, synthesize
 
     config = SynthConfig(seconds=seconds, size=size, seed=seed, voice="espeak", speaker=TRAINING_VOICE.speaker, words_per_minute=TRAINING_VOICE.words_per_minute, mouth="visemes", features=kind, test_fraction=0.1)
     if (folder / "meta.json").exists():
@@ -127,14 +127,14 @@ def bench_voices(
         per kind :func:`mouth_follow`'s figures and ``mean_abs_error``; plus the settings and the
         seconds of each step.
     """
-    from .data import load_dataset
-    from .demo import DEMO_TRAIN
-    from .espeak import espeak_ready
-    from .io import AudioTrack
-    from .render_video import audio_frames, pingpong, render_frames
-    from .synth import SAMPLE_RATE, HeadModel, TorsoModel, espeak_speech
-    from .train import load_run, train
-    from .visemes import jaw_track
+    from ..audio.espeak import espeak_ready
+    from ..audio.visemes import jaw_track
+    from ..commands.demo import DEMO_TRAIN
+    from ..commands.render_video import audio_frames, pingpong, render_frames
+    from ..io import AudioTrack
+    from ..model.data import load_dataset
+    from ..model.train import load_run, train
+    from ..synth import SAMPLE_RATE, HeadModel, TorsoModel, espeak_speech
 
     if not espeak_ready():
         raise RuntimeError("bench voices needs espeak-ng (apt install espeak-ng): its speech and phoneme timings are the truth")

@@ -1,6 +1,6 @@
 """The training schedule of a run: what ``adnerf train --config`` takes and ``run.json`` stores.
 
-Its own module so that the run folder (:mod:`adnerf.run_folder`), rendering and evaluation read a
+Its own module so that the run folder (:mod:`adnerf.model.run_folder`), rendering and evaluation read a
 run's schedule without importing the trainer.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields, replace
 
-from .fields import check_config_keys
+from ..fields import check_config_keys
 from .talking_head import AMP_MODES
 
 __all__ = ["PRESETS", "TrainConfig"]
@@ -60,7 +60,7 @@ class TrainConfig:
         amp: Mixed precision of the field evaluations: ``"auto"`` (bfloat16 on CUDA, off on
             CPU), ``"bf16"`` or ``"off"``; the compositor and the losses stay in float32.
         seed: Seed of the initialisation and of the ray sampling.
-        preset: Field preset (``"fast"`` or ``"paper"``; see :func:`~adnerf.talking_head.model_config`).
+        preset: Field preset (``"fast"`` or ``"paper"``; see :func:`~adnerf.model.talking_head.model_config`).
     """
 
     head_iters: int = 3600

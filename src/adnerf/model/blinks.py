@@ -1,7 +1,7 @@
 """Eye blinks: natural blink tracks and the choices ``adnerf render --blink`` offers.
 
 An eye-openness track is one value per frame: 1 the eyes as open as usual, 0 closed (the scale of
-a dataset's ``eye.npy``, see :mod:`adnerf.data`). :func:`blink_track` makes natural blinks (one
+a dataset's ``eye.npy``, see :mod:`adnerf.model.data`). :func:`blink_track` makes natural blinks (one
 every 2-6 s, 0.2 s long, as people blink while talking); the synthetic scene blinks with it and
 ``render --blink auto`` plays it.
 """
@@ -9,11 +9,13 @@ every 2-6 s, 0.2 s long, as people blink while talking); the synthetic scene bli
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
-__all__ = ["BLINK_GAP", "BLINK_SECONDS", "BLINK_CHOICES", "blink_track", "count_blinks", "eye_track"]
+__all__ = ["BLINKING", "BLINK_GAP", "BLINK_SECONDS", "BLINK_CHOICES", "blink_track", "blinks_in", "count_blinks", "eye_track"]
 
+BLINKING = 0.75  # eye openness below which a frame counts as blinking
 BLINK_SECONDS = 0.2
 BLINK_GAP = (2.0, 6.0)  # seconds between blinks
 BLINK_CHOICES = ("auto", "none", "FILE.npy")
@@ -39,6 +41,14 @@ def blink_track(times: np.ndarray, seed: int = 0, gap: tuple[float, float] = BLI
         closed = np.maximum(closed, np.where((u >= 0) & (u <= 1), np.sin(np.pi * u) ** 2, 0.0))
         start += rng.uniform(*gap)
     return 1.0 - closed
+
+
+def blinks_in(eye: np.ndarray | None, frames: Sequence[int]) -> bool:
+    """Whether an eye-openness track ``(N,)`` (``None``: none) blinks in any of ``frames``: only
+    then is there anything for a head to learn from it. A clip that never blinks (the shared real
+    clip's openness stays within 0.81-1.23) gives a per-frame value that carries no blink, only
+    a number the head could tell frames apart by instead of by their speech."""
+    return eye is not None and bool((np.asarray(eye)[list(frames)] < BLINKING).any())
 
 
 def count_blinks(eye: np.ndarray, closed: float = 0.5) -> int:

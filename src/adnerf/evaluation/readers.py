@@ -20,7 +20,7 @@ __all__ = ["EyeReader", "JawReader", "exact_frame", "eye_boxes"]
 
 def exact_frame(head, torso, pose: np.ndarray, plate: np.ndarray, opening: float = 0.0, eye: float = 1.0) -> np.ndarray:  # noqa: ANN001
     """The synthetic scene rendered exactly at a pose, jaw opening and eye openness, uint8."""
-    from .synth import render_frame
+    from ..synth import render_frame
 
     return np.round(np.clip(render_frame(head, torso, pose, opening, plate, eye)[0], 0.0, 1.0) * 255.0).astype(np.uint8)
 
@@ -31,8 +31,8 @@ def eye_boxes(meta, poses: np.ndarray, margin: float = 1.5) -> np.ndarray:  # no
     times the lids' semi-axes (at the eyes' depth), clipped to the image."""
     import torch
 
-    from .pose import HeadPose
-    from .synth import EYE_AXES, eye_centres
+    from ..pose import HeadPose
+    from ..synth import EYE_AXES, eye_centres
 
     fx, fy = meta.intrinsics[:2]
     camera = meta.camera()
@@ -88,9 +88,9 @@ class JawReader(_TemplateReader):
     def __init__(self, ds, poses: np.ndarray, steps: int = 21) -> None:  # noqa: ANN001
         import torch
 
+        from ..pose import HeadPose
+        from ..synth import HeadModel, TorsoModel
         from .evaluate import mouth_boxes_at
-        from .pose import HeadPose
-        from .synth import HeadModel, TorsoModel
 
         head, torso = HeadModel(ds.meta.width), TorsoModel(ds.meta.width)
         plate = ds.background.astype(np.float64) / 255.0
@@ -109,7 +109,7 @@ class EyeReader(_TemplateReader):
     """
 
     def __init__(self, ds, poses: np.ndarray, steps: int = 11) -> None:  # noqa: ANN001
-        from .synth import HeadModel, TorsoModel
+        from ..synth import HeadModel, TorsoModel
 
         head, torso = HeadModel(ds.meta.width), TorsoModel(ds.meta.width)
         plate = ds.background.astype(np.float64) / 255.0
