@@ -51,7 +51,6 @@ def eye_code(openness: Tensor) -> Tensor:
     return torch.cat([torch.sin(angle), 1.0 - torch.cos(angle)], dim=-1)
 
 
-
 @dataclass
 class FrameCondition:
     """The signals of one frame.
