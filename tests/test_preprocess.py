@@ -17,8 +17,13 @@ from adnerf.model.data import LABEL_HEAD, LABEL_TORSO, load_dataset
 from adnerf.pose import rotation_angle
 from adnerf.preprocess import PreprocessConfig, PreprocessError, preprocess_video
 from adnerf.preprocess.headpose import estimate_head_poses, mean_rotation
-from adnerf.preprocess.parsing import person_hull, split_head_torso
-from adnerf.preprocess.pipeline import _camera_motion
+from adnerf.preprocess.parsing import (
+    SHOULDER_HALF_WIDTH,
+    person_hull,
+    split_head_torso,
+    torso_check,
+)
+from adnerf.preprocess.pipeline import PERSON_AT_BOTTOM_MIN, _camera_motion
 from adnerf.preprocess.plate import background_plate
 from adnerf.preprocess.tracking import TrackConfig, Tracks, rigid_region, track_points
 from adnerf.synth import SynthConfig, synthesize
@@ -72,6 +77,13 @@ def test_preprocess_recovers_the_synthetic_truth(preprocessed: Path, scene: Path
     assert report["face_head_torso_cut"].startswith("the jaw line") and "layers_warning" not in report
     assert report["layers"]["lip_in_head"] >= 0.98 and report["layers"]["chin_lip_midpoint_in_head"] >= 0.9
     assert out["passed"]["layers"] and out["layers_truth_lip_in_head"] >= 0.98
+    # The clothes: the suit fills the bottom edge under the face in the truth; the classical parser
+    # leaves out its left part (it finds the person by motion; measured 0.78 of the edge), and the
+    # report warns exactly when the share is under the bar.
+    assert out["torso_truth_person_at_bottom"] == 1.0 and out["torso_truth_frames"] == 75
+    share = report["torso"]["person_at_bottom"]
+    assert report["torso"]["frames"] == 75 and share == out["torso_person_at_bottom"] < 0.95
+    assert ("torso_warning" in report) == (share < PERSON_AT_BOTTOM_MIN) and out["passed"]["torso"] == (share >= PERSON_AT_BOTTOM_MIN)
 
 
 def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path) -> None:
@@ -442,3 +454,27 @@ def test_adnerf_parsing_colours() -> None:
 
     bgr = np.array([[[255, 255, 255], [255, 0, 0], [0, 255, 0], [0, 0, 255], [250, 3, 5], [251, 252, 249]]], np.uint8)
     np.testing.assert_array_equal(parse_adnerf_parsing(bgr), [[0, LABEL_HEAD, LABEL_TORSO, LABEL_TORSO, LABEL_HEAD, 0]])
+
+
+def test_torso_check_measures_the_bottom_edge_under_the_face() -> None:
+    """Known answers: a face 20 px wide (landmarks 0 and 16) with its chin at (50, 60) in a
+    100 x 100 frame spans columns 30-70 of the bottom row (a face width either side)."""
+    lm = np.zeros((3, 68, 2))
+    lm[:, 0], lm[:, 16], lm[:, 8] = (40.0, 40.0), (60.0, 40.0), (50.0, 60.0)
+    labels = np.zeros((3, 100, 100), np.uint8)
+    labels[0, 80:, 30:70] = 2  # the whole span: torso
+    labels[1, 99, 30:50] = 2  # its left half, as a jacket taken for background on the right
+    labels[1, 99, 70:] = 2  # outside the span: does not count
+    labels[2, 99, 40:60] = 1  # head pixels count as person too (a close crop's hair)
+    got = torso_check(labels, lm)
+    assert got == {"person_at_bottom": 0.5, "person_at_bottom_worst": 0.5, "frames": 3}
+    assert SHOULDER_HALF_WIDTH == 1.0 and 0.5 < PERSON_AT_BOTTOM_MIN
+    # The span is clipped to the image; frames without a face or whose face reaches the bottom are left out.
+    lm2 = lm.copy()
+    lm2[0, :, 0] -= 40.0  # chin at x = 10: span [-10, 30) -> [0, 30)
+    labels2 = np.zeros_like(labels)
+    labels2[0, 99, :15] = 2
+    lm2[1] = np.nan
+    lm2[2, 8, 1] = 97.0  # 3 px above the bottom: less than a quarter of a face width
+    assert torso_check(labels2, lm2) == {"person_at_bottom": 0.5, "person_at_bottom_worst": 0.5, "frames": 1}
+    assert torso_check(labels2[1:], lm2[1:]) == {"person_at_bottom": None, "person_at_bottom_worst": None, "frames": 0}

@@ -25,8 +25,8 @@ from ..evaluation.landmark_metrics import pearson
 from ..metrics import psnr
 from ..model.data import load_dataset
 from .headpose import align_poses, project_points
-from .parsing import layer_check
-from .pipeline import LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN
+from .parsing import layer_check, torso_check
+from .pipeline import LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN, PERSON_AT_BOTTOM_MIN
 
 __all__ = ["align_poses", "parsing_iou", "check_preprocess", "BARS"]
 
@@ -37,6 +37,7 @@ BARS = {
     "plate_psnr_seen": 30.0,
     "layers_lip_in_head": LIP_IN_HEAD_MIN,
     "layers_chin_lip_midpoint_in_head": MIDPOINT_IN_HEAD_MIN,
+    "torso_person_at_bottom": PERSON_AT_BOTTOM_MIN,
 }
 TRUE_HEAD_WIDTH = 1.6  # the synthetic head's width in its scene units
 
@@ -116,6 +117,9 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
         landmarks = np.load(lms)
         out.update({f"layers_{k}": v for k, v in layer_check(est.parsing, landmarks).items()})
         out.update({f"layers_truth_{k}": v for k, v in layer_check(ref.truth.parsing, landmarks).items()})
+        # the clothes in the person: the bottom edge under the face, in the written parsing and the truth's
+        out.update({f"torso_{k}": v for k, v in torso_check(est.parsing, landmarks).items()})
+        out.update({f"torso_truth_{k}": v for k, v in torso_check(ref.truth.parsing, landmarks).items()})
     out["passed"] = {
         "rotation": out["rotation_median_deg"] <= BARS["rotation_median_deg"],
         "translation": out["translation_median_head_widths"] <= BARS["translation_median_head_widths"],
@@ -124,4 +128,6 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
     }
     if "layers_lip_in_head" in out:
         out["passed"]["layers"] = out["layers_lip_in_head"] >= BARS["layers_lip_in_head"] and out["layers_chin_lip_midpoint_in_head"] >= BARS["layers_chin_lip_midpoint_in_head"]
+    if out.get("torso_person_at_bottom") is not None:
+        out["passed"]["torso"] = out["torso_person_at_bottom"] >= BARS["torso_person_at_bottom"]
     return out

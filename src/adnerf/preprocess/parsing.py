@@ -22,7 +22,7 @@ from scipy.ndimage import uniform_filter1d
 
 from ..model.data import LABEL_HEAD, LABEL_TORSO
 
-__all__ = ["Parser", "ClassicalParser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "person_hull", "JAW_MARGIN"]
+__all__ = ["Parser", "ClassicalParser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "torso_check", "person_hull", "JAW_MARGIN", "SHOULDER_HALF_WIDTH"]
 
 Progress = Callable[[int, int], None]
 
@@ -238,6 +238,53 @@ def layer_check(labels: np.ndarray, landmarks: np.ndarray) -> dict:
         "chin_lip_midpoint_in_head": float(mid.mean()),
         "chin_lip_midpoint_worst_frame": int(misses[0]) if len(misses) else None,
     }
+
+
+SHOULDER_HALF_WIDTH = 1.0  # face widths each side of the chin that shoulders cover at least
+
+
+def torso_check(labels: np.ndarray, landmarks: np.ndarray, below_chin: float = 0.25) -> dict:
+    """Whether the clothes are in the person: how much of the frame's bottom row under the face is
+    labelled person.
+
+    In a head-and-shoulders (or closer) framing the body fills the bottom edge at least
+    :data:`SHOULDER_HALF_WIDTH` face widths (landmarks 0 to 16) either side of the chin (landmark
+    8): shoulders are about 2.5-3 face widths wide. Where less of that span (clipped to the
+    image) is head or torso, clothes were taken for background, as the classical parser does
+    with a jacket that never moves (it finds the person by motion).
+
+    Args:
+        labels: ``(N, H, W)`` uint8 parsing.
+        landmarks: ``(N, 68, 2)`` landmarks (pixel centres at ``+0.5``); frames without a face
+            (NaN) are left out.
+        below_chin: Frames whose bottom row is closer than this many face widths below the chin
+            (the face reaches the edge: no shoulders to see) are left out. The shared sample
+            clip's bottom edge is 0.29-0.42 face widths below her chin, and already shows her
+            jacket across it.
+
+    Returns:
+        ``person_at_bottom`` (the median over frames of the labelled fraction of that span),
+        ``person_at_bottom_worst`` (the lowest) and ``frames`` (how many were measured; the two
+        are ``None`` when none was).
+    """
+    n, h, w = labels.shape
+    fractions = []
+    for i in range(n):
+        lm = landmarks[i]
+        if not np.isfinite(lm).all():
+            continue
+        width = float(np.linalg.norm(lm[16] - lm[0]))
+        chin_x, chin_y = float(lm[CHIN_TIP, 0]), float(lm[CHIN_TIP, 1])
+        if not width > 0 or h - chin_y < below_chin * width:
+            continue
+        a = int(np.clip(np.floor(chin_x - SHOULDER_HALF_WIDTH * width), 0, w))
+        b = int(np.clip(np.ceil(chin_x + SHOULDER_HALF_WIDTH * width), 0, w))
+        if b <= a:
+            continue
+        fractions.append(float((labels[i, h - 1, a:b] > 0).mean()))
+    if not fractions:
+        return {"person_at_bottom": None, "person_at_bottom_worst": None, "frames": 0}
+    return {"person_at_bottom": float(np.median(fractions)), "person_at_bottom_worst": float(min(fractions)), "frames": len(fractions)}
 
 
 @dataclass
