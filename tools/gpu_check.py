@@ -91,7 +91,7 @@ def step_render(args: argparse.Namespace) -> dict:
     camera = Camera(intrinsics_matrix(fx, fy, cx, cy).to(args.device), size, size)
     plate = torch.nn.functional.interpolate(torch.as_tensor(ds.background, dtype=torch.float32).permute(2, 0, 1)[None] / 255.0, size=(size, size), mode="bilinear")[0].permute(1, 2, 0).to(args.device)
     with torch.no_grad():
-        codes = run.model.all_codes(torch.as_tensor(ds.features, device=args.device), run.smooth_audio)
+        codes = run.model.frame_codes(torch.as_tensor(ds.features, device=args.device))
     frames = list(ds.meta.test)
     result: dict = {"size": size, "frames": len(frames)}
 

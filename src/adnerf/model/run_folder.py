@@ -91,11 +91,6 @@ class Run:
     elapsed: dict = field(default_factory=dict)
 
     @property
-    def smooth_audio(self) -> bool:
-        """Whether AudioAttNet was on at the end of what was trained (the model's own switch)."""
-        return self.model.smooths_audio
-
-    @property
     def has_torso(self) -> bool:
         """Whether stage 2 ran at all."""
         return self.torso_step > 0

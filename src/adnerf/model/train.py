@@ -362,12 +362,12 @@ class Trainer:
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
     @torch.no_grad()
-    def head_renders(self, in_box: torch.Tensor) -> torch.Tensor:
+    def head_renders(self, in_box: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
         """Stage-1 renders over the plate of every frame ``(N, H*W, 3)``, cached in the run folder.
 
         Only the pixels stage 2 draws rays at (``in_box (H*W,)``: rays that cross the torso box,
-        and the frame's torso pixels) are rendered; the others hold the plate, which stage 2 never
-        reads.
+        and the frame's torso pixels) are rendered, under the frames' audio codes ``codes (N,
+        audio_dim)``; the others hold the plate, which stage 2 never reads.
         """
         path = self.root / "head_renders.pt"
         if path.exists():
@@ -375,7 +375,6 @@ class Trainer:
             if cached["head_step"] == self.head_step:
                 return cached["renders"].float()
         self.model.eval()
-        codes = self.model.frame_codes(self.windows)
         out = self.plate.expand_as(self.frames).clone()
         for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
             pix = torch.nonzero(in_box | self.is_torso[frame])[:, 0]
@@ -390,9 +389,9 @@ class Trainer:
         if self.head_step < tcfg.head_iters:
             raise RunError(f"stage 2 needs a finished stage 1 ({self.head_step}/{tcfg.head_iters} head iterations); run --stage head first")
         near, far = self.model.layers["torso"].crossing(self.rays)
-        backgrounds = self.head_renders(far > near)
         with torch.no_grad():
             codes = self.model.frame_codes(self.windows)
+        backgrounds = self.head_renders(far > near, codes)
         candidates = torch.nonzero(far > near)[:, 0]
         sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
         self.model.train()

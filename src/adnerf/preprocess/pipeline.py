@@ -207,6 +207,12 @@ class _Work:
 Bar = Callable[[str, int, int], None]
 
 
+
+def _report_warning(doc: dict, key: str, msg: str) -> None:
+    """Keep a warning in a report (``doc[key]``) and print it on stderr."""
+    doc[key] = msg
+    print(f"warning: {msg}", file=sys.stderr)
+
 def step_bars() -> Bar:
     """A ``progress`` for :func:`preprocess_video` that shows one progress bar per step."""
     from tqdm import tqdm
@@ -316,8 +322,7 @@ def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) ->
     if motion > 0.3:
         msg = f"{video}: the background moves ({motion:.2f} px per frame): the camera does not look static; parsing, pose and the plate assume it is"
         warnings.warn(msg, stacklevel=2)
-        print(f"warning: {msg}", file=sys.stderr)
-        doc["warning"] = msg
+        _report_warning(doc, "warning", msg)
     work.save("parsing", labels)
     work.save_json("parse", doc)
     return doc
@@ -583,24 +588,26 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         report["layers"] = layer_check(labels, landmarks)
         low = report["layers"]["lip_in_head"] < LIP_IN_HEAD_MIN or report["layers"]["chin_lip_midpoint_in_head"] < MIDPOINT_IN_HEAD_MIN
         if low:
-            report["layers_warning"] = (
+            _report_warning(
+                report,
+                "layers_warning",
                 f"only {report['layers']['lip_in_head']:.0%} of the lip landmarks and {report['layers']['chin_lip_midpoint_in_head']:.0%} of the points between chin "
-                "and lower lip lie in the head layer: the mouth would be rendered by the torso, which does not follow the audio"
+                "and lower lip lie in the head layer: the mouth would be rendered by the torso, which does not follow the audio",
             )
-            print(f"warning: {report['layers_warning']}", file=sys.stderr)
         report["torso"] = torso_check(labels, landmarks)
         share = report["torso"]["person_at_bottom"]
         if share is not None and share < PERSON_AT_BOTTOM_MIN:
-            report["torso_warning"] = (
+            _report_warning(
+                report,
+                "torso_warning",
                 f"only {share:.0%} of the frame's bottom edge under the face (a face width either side of the chin) is labelled person "
                 f"(the worst frame {report['torso']['person_at_bottom_worst']:.0%}): clothes were probably taken for background and will be rendered as the plate (see preprocess_report.png). "
                 + (
                     "The classical parser finds the person by motion, and clothes that never move look like the wall; --parser mediapipe segments the person by appearance"
                     if config.parser == "classical"
                     else "Check the parsing of this clip"
-                )
+                ),
             )
-            print(f"warning: {report['torso_warning']}", file=sys.stderr)
     else:
         report["layers"] = {"note": "no landmarks (--face none): the fraction of the mouth in the head layer is not known"}
     sheet = _contact_sheet(frames, labels, poses, K, config.head_width, landmarks)
