@@ -17,8 +17,10 @@ import torch
 from adnerf.analytic import UniformSphere
 from adnerf.cameras import intrinsics_matrix, pixel_rays
 from adnerf.commands.render_video import render_frames
+from adnerf.model.blinks import blinks_in
 from adnerf.model.data import load_dataset
-from adnerf.model.train import TrainConfig, load_run, train
+from adnerf.model.talking_head import model_config
+from adnerf.model.train import TrainConfig, Trainer, load_run, train
 from adnerf.occupancy import OccupancyGrid
 from adnerf.renderer import VolumeRenderer
 from adnerf.rng import uniform
@@ -87,3 +89,17 @@ def test_training_resumes_on_the_device_and_runs_render_across_devices(tiny: Pat
     on_dev = render_frames(load_run(root, dev), ds.features[idx], ds.poses[idx], plate).frames.astype(np.float64)
     tolerance = 0.0 if dev == "cpu" else 3.0  # mean absolute difference in 8-bit levels
     assert np.abs(on_cpu - on_dev).mean() <= tolerance
+
+
+def test_trainer_draws_frames_on_the_cpu_and_fuses_adam_on_cuda(tiny: Path, tmp_path: Path, device: torch.device) -> None:
+    """The frame pools stay on the CPU (a draw read back from a GPU waits for its queue); on CUDA
+    the optimisers are fused, on the CPU the plain loop (the CPU path as it was)."""
+    ds = load_dataset(tiny, truth=False)
+    tcfg = TrainConfig(head_iters=3, torso_iters=0, rays=32)
+    tr = Trainer(tmp_path, ds, model_config(ds.meta, "fast", eye=blinks_in(ds.eye, ds.meta.train)), tcfg, str(device), False)
+    assert tr.train_frames.device.type == "cpu" and tr.blinking.device.type == "cpu"
+    assert tr.pick_frame() in set(ds.meta.train)
+    fused = device.type == "cuda"
+    assert bool(tr.opt_head.defaults.get("fused")) == fused and bool(tr.opt_torso.defaults.get("fused")) == fused
+    tr.head_stage(None)
+    assert tr.head_step == 3 and all(torch.isfinite(p).all() for p in tr.model.parameters())

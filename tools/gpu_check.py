@@ -3,7 +3,7 @@
 Run from the repository root on a machine with one CUDA GPU::
 
     python tools/gpu_check.py                      # writes docs/bench/gpu.json (about 8 minutes)
-    python tools/gpu_check.py --out gpu.json --fields-budget 30 --skip fields
+    python tools/gpu_check.py --out gpu.json --skip bench_render,fields --demo-scales 2 --real DATA --real-scale 4
 
 Steps, each timed, each written to the JSON as soon as it ends (so a run stopped part-way keeps
 what it measured), each with its own time limit:
@@ -11,10 +11,19 @@ what it measured), each with its own time limit:
 1. ``tests``: the device tests on CUDA (``pytest --device cuda tests/test_devices.py``).
 2. ``demo``: ``adnerf demo --device cuda``: wall time, training time and the demo's metrics.
 3. ``render``: frames per second of the demo's trained model at 450x450 (head and torso, and head
-   alone), steady state, for two ray-chunk sizes (262144 is the GPU default of
+   alone), steady state, in whole-frame batches of 262144 rays (the GPU default of
    :func:`adnerf.model.talking_head.render_chunk`).
-4. ``bench_render``: ``adnerf bench render --device cuda`` (quadrature error and time per Mray).
-5. ``fields``: a shortened ``adnerf bench fields --device cuda`` (held-out PSNR against time).
+4. ``steps``: seconds per stage-1 training iteration on the demo's data against the rays per
+   iteration (1024, the CPU's default, to 8192), timed over ``--steps-counts`` iterations
+   after a warm-up (empty-space skipping is on after a tenth of them).
+5. ``demo_scaled``: the demo's scene trained again with ``TrainConfig().scaled(k)`` for each
+   ``k`` of ``--demo-scales`` (``k`` times the rays in ``k`` times fewer steps): time and bars.
+6. ``real``: with ``--real DATA`` (a preprocessed real clip), a run trained on the GPU with
+   ``TrainConfig(HEAD, TORSO).scaled(K)`` (``--real-iters HEAD,TORSO``, ``--real-scale K``), its
+   training time and its held-out metrics without the landmark ones (``adnerf evaluate --no-landmarks``); the run stays
+   in the scratch folder for the landmark metrics elsewhere.
+7. ``bench_render``: ``adnerf bench render --device cuda`` (quadrature error and time per Mray).
+8. ``fields``: a shortened ``adnerf bench fields --device cuda`` (held-out PSNR against time).
 
 The JSON records the device name, torch and CUDA versions and, per step, its figures or the error.
 """
@@ -30,7 +39,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-STEPS = ("tests", "demo", "render", "bench_render", "fields")
+STEPS = ("tests", "demo", "render", "steps", "demo_scaled", "real", "bench_render", "fields")
 
 
 def _run(cmd: list[str], limit: float) -> tuple[int, str, float]:
@@ -67,7 +76,8 @@ def step_demo(args: argparse.Namespace) -> dict:
     result: dict = {"exit_code": code, "wall_seconds": seconds}
     if (folder / "metrics.json").exists():
         metrics = json.loads((folder / "metrics.json").read_text())
-        result.update({k: metrics[k] for k in ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "mouth_open_corr_gt", "train_seconds", "synth_seconds", "render_fps", "total_seconds")})
+        result.update({k: metrics.get(k) for k in ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "mouth_open_corr_gt", "blink_corr", "blink_corr_gt", "train_seconds", "synth_seconds", "render_fps", "total_seconds")})
+        result["schedule"] = {k: metrics["train"][k] for k in ("rays", "head_iters", "torso_iters")}
         result["voice"] = json.loads((folder / "data" / "meta.json").read_text())["source"].split("voice=")[-1]
     else:
         result["output_tail"] = out[-2000:]
@@ -100,10 +110,10 @@ def step_render(args: argparse.Namespace) -> dict:
             torch.cuda.synchronize()
 
     for torso in (True, False):
-        for chunk in (65536, 262144):  # 1024 (the CPU's) gave 0.8 frames/s on an H100
+        for chunk in (262144,):  # 1024 (the CPU's) gave 0.8 frames/s on an H100, 65536 19-22
             def one(i: int) -> None:
                 pose = ds.head_pose(frames[i % len(frames)], device=args.device)
-                render_frame(run.model, camera, pose, codes[frames[i % len(frames)]], plate, torso=torso, chunk=chunk, amp=run.train_config.amp)
+                render_frame(run.model, camera, pose, codes[frames[i % len(frames)]], plate, layers=None if torso else ("head",), chunk=chunk, amp=run.train_config.amp)
 
             for i in range(3):  # warm-up
                 one(i)
@@ -118,6 +128,85 @@ def step_render(args: argparse.Namespace) -> dict:
     if args.device == "cuda":
         result["max_memory_gb"] = torch.cuda.max_memory_allocated() / 1e9
     return result
+
+
+def step_steps(args: argparse.Namespace) -> dict:
+    import torch
+
+    from adnerf.model.blinks import blinks_in
+    from adnerf.model.data import load_dataset
+    from adnerf.model.talking_head import model_config
+    from adnerf.model.train import TrainConfig, Trainer
+
+    ds = load_dataset(Path(args.work) / "demo" / "data", truth=False)
+    rows = []
+    warm, timed = args.steps_counts
+    # Each ray count with the trainer's Adam (fused on CUDA), and the smallest also with the
+    # multi-tensor Adam PyTorch uses by default there: what fusing saves per step.
+    for rays, adam in [(r, "trainer") for r in args.steps_rays] + [(args.steps_rays[0], "foreach")]:
+        tcfg = TrainConfig(rays=rays, head_iters=warm + timed, checkpoint_every=10**9, log_every=10**9)
+        root = Path(args.work) / f"steps_{rays}_{adam}"
+        root.mkdir(parents=True, exist_ok=True)
+        trainer = Trainer(root, ds, model_config(ds.meta, "fast", eye=blinks_in(ds.eye, ds.meta.train)), tcfg, args.device, False)
+        if adam == "foreach":
+            trainer.opt_head = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in trainer.opt_head.param_groups], betas=(0.9, 0.99))
+        trainer.head_stage(warm)  # past occupancy_start: empty-space skipping on, as in most of a run
+        if args.device == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        trainer.head_stage(timed)
+        if args.device == "cuda":
+            torch.cuda.synchronize()
+        rows.append({"rays": rays, "adam": adam, "seconds_per_iteration": (time.perf_counter() - t0) / timed, "eye_batch": bool(trainer.blinking.numel())})
+    return {"stage": "head", "rows": rows}
+
+
+def step_demo_scaled(args: argparse.Namespace) -> dict:
+    """The demo's scene trained with ``TrainConfig().scaled(k)`` (k times the rays in k times fewer
+    steps) for each ``k`` of ``--demo-scales``; the scene is the demo step's."""
+    import shutil
+
+    result: dict = {}
+    for k in args.demo_scales:
+        folder = Path(args.work) / f"demo_x{k}"
+        if not (folder / "data").exists():
+            shutil.copytree(Path(args.work) / "demo" / "data", folder / "data")
+        script = (
+            "import sys; from adnerf.commands.demo import run_demo; from adnerf.model.train_config import TrainConfig; "
+            f"run_demo(sys.argv[1], device={args.device!r}, train_config=TrainConfig().scaled({k}), progress=False)"
+        )
+        code, out, seconds = _run([sys.executable, "-c", script, str(folder)], args.demo_limit)
+        row: dict = {"exit_code": code, "wall_seconds": seconds}
+        if (folder / "metrics.json").exists():
+            metrics = json.loads((folder / "metrics.json").read_text())
+            row.update({key: metrics.get(key) for key in ("psnr_test", "psnr_mouth_test", "mouth_open_corr", "blink_corr", "train_seconds", "render_fps")})
+            row["schedule"] = {key: metrics["train"][key] for key in ("rays", "head_iters", "torso_iters")}
+        else:
+            row["output_tail"] = out[-2000:]
+        result[f"x{k}"] = row
+    return result
+
+
+def step_real(args: argparse.Namespace) -> dict:
+    if not args.real:
+        return {"skipped": "no --real dataset"}
+    from adnerf.evaluation.evaluate import evaluate_run
+    from adnerf.model.data import load_dataset
+    from adnerf.model.train import TrainConfig, load_run, train
+
+    head, torso = (int(v) for v in args.real_iters.split(","))
+    tcfg = TrainConfig(head_iters=head, torso_iters=torso).scaled(args.real_scale)
+    head, torso = tcfg.head_iters, tcfg.torso_iters
+    run_dir = Path(args.work) / "real_run"
+    t0 = time.perf_counter()
+    train(args.real, run_dir, config=tcfg, device=args.device, progress=False)
+    seconds = time.perf_counter() - t0
+    import torch
+
+    elapsed = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["elapsed"]  # seconds in each stage's loop
+    metrics, _ = evaluate_run(load_run(run_dir, args.device), load_dataset(args.real), "test", landmarks=False)
+    keep = ("frames", "psnr", "ssim", "psnr_mouth", "ssim_mouth", "psnr_head", "ssim_head", "render_fps")
+    return {"schedule": {"rays": tcfg.rays, "head_iters": head, "torso_iters": torso}, "train_wall_seconds": seconds, "loop_seconds": elapsed, "run": str(run_dir), **{k: metrics.get(k) for k in keep}}
 
 
 def step_bench_render(args: argparse.Namespace) -> dict:
@@ -143,6 +232,12 @@ def main() -> int:
     parser.add_argument("--render-size", type=int, default=450, help="frame side for the render speed (default 450, as AD-NeRF)")
     parser.add_argument("--fields-budget", type=float, default=30.0, help="training seconds per configuration in the fields bench (default 30)")
     parser.add_argument("--fields-configs", default="paper,fast", help="configurations of the fields bench (default paper,fast)")
+    parser.add_argument("--steps-rays", default=(1024, 2048, 4096, 8192), type=lambda v: tuple(int(x) for x in v.split(",")), help="rays per iteration of the steps step (default 1024,2048,4096,8192)")
+    parser.add_argument("--steps-counts", default=(60, 60), type=lambda v: tuple(int(x) for x in v.split(",")), help="WARM,TIMED iterations per ray count of the steps step (default 60,60)")
+    parser.add_argument("--real", default=None, help="a preprocessed real clip (dataset folder) to train on the GPU (the real step)")
+    parser.add_argument("--real-iters", default="4345,3555", help="HEAD,TORSO iterations of the real step's schedule before --real-scale (default 4345,3555: the README's CPU bench)")
+    parser.add_argument("--real-scale", type=int, default=1, help="the real step trains TrainConfig(HEAD, TORSO).scaled(this): this many times the rays in as many times fewer steps (default 1)")
+    parser.add_argument("--demo-scales", default=(), type=lambda v: tuple(int(x) for x in v.split(",") if x), help="demo_scaled step: scales k of TrainConfig().scaled(k) to train the demo's scene with (default none)")
     args = parser.parse_args()
 
     import torch

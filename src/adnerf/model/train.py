@@ -143,23 +143,29 @@ class Trainer:
         labels = torch.as_tensor(ds.parsing, device=device).reshape(ds.meta.n_frames, -1)
         self.is_head, self.is_torso = labels == LABEL_HEAD, labels == LABEL_TORSO
         self.windows = torch.as_tensor(ds.features, device=device)
-        self.train_frames = torch.as_tensor(ds.meta.train, device=device)
+        # The frame pools stay on the CPU, as the generator does: reading a drawn frame back from
+        # a GPU would wait for the work queued there at every draw.
+        self.train_frames = torch.as_tensor(ds.meta.train)
         if self.model.reads_eye and ds.eye is None:
             raise RunError(f"the run's head reads the eye openness but {ds.root} has no eye.npy")
         self.eye = torch.as_tensor(ds.eye, device=device) if ds.eye is not None and self.model.reads_eye else None
         # Frames that teach the eye condition: the blinking ones (drawn more often, blink_frames).
-        self.blinking = self.train_frames[self.eye[self.train_frames] < BLINKING] if self.eye is not None else self.train_frames[:0]
+        self.blinking = self.train_frames[torch.as_tensor(ds.eye)[self.train_frames] < BLINKING] if self.eye is not None else self.train_frames[:0]
         self.pixel_index = torch.arange(ds.meta.width * ds.meta.height, device=device)
         m = self.model
-        m.fit_feature_scale(self.windows[self.train_frames])
+        m.fit_feature_scale(self.windows[self.train_frames.to(device)])
+        # On CUDA one fused kernel updates every parameter (the per-parameter loop would launch
+        # kernels by the dozen per step); the update is Adam's either way.
+        fused = {"fused": True} if torch.device(device).type == "cuda" else {}
         self.opt_head = torch.optim.Adam(
             [
                 {"params": list(m.layers["head"].parameters()), "lr": tcfg.lr},
                 {"params": list(m.audio_net.parameters()) + list(m.att_net.parameters()), "lr": tcfg.lr_audio},
             ],
             betas=(0.9, 0.99),
+            **fused,
         )
-        self.opt_torso = torch.optim.Adam(list(m.layers["torso"].parameters()), lr=tcfg.lr, betas=(0.9, 0.99))
+        self.opt_torso = torch.optim.Adam(list(m.layers["torso"].parameters()), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.head_step = self.torso_step = 0
         self.elapsed = {"head": 0.0, "torso": 0.0}
