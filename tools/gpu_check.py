@@ -70,18 +70,26 @@ def step_tests(args: argparse.Namespace) -> dict:
     return {"exit_code": code, "summary": summary[-1] if summary else out[-500:], "seconds": seconds}
 
 
-def step_demo(args: argparse.Namespace) -> dict:
-    folder = Path(args.work) / "demo"
-    code, out, seconds = _run([sys.executable, "-m", "adnerf.cli", "demo", "-o", str(folder), "--device", args.device], args.demo_limit)
+DEMO_FIGURES = ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "mouth_open_corr_gt", "blink_corr", "blink_corr_gt", "train_seconds", "synth_seconds", "render_fps", "total_seconds")
+
+
+def _demo_result(folder: Path, code: int, out: str, seconds: float) -> dict:
+    """A demo's figures and schedule from ``folder/metrics.json``, or its output's tail."""
     result: dict = {"exit_code": code, "wall_seconds": seconds}
     if (folder / "metrics.json").exists():
         metrics = json.loads((folder / "metrics.json").read_text())
-        result.update({k: metrics.get(k) for k in ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "mouth_open_corr_gt", "blink_corr", "blink_corr_gt", "train_seconds", "synth_seconds", "render_fps", "total_seconds")})
+        result.update({k: metrics.get(k) for k in DEMO_FIGURES})
         result["schedule"] = {k: metrics["train"][k] for k in ("rays", "head_iters", "torso_iters")}
         result["voice"] = json.loads((folder / "data" / "meta.json").read_text())["source"].split("voice=")[-1]
     else:
         result["output_tail"] = out[-2000:]
     return result
+
+
+def step_demo(args: argparse.Namespace) -> dict:
+    folder = Path(args.work) / "demo"
+    code, out, seconds = _run([sys.executable, "-m", "adnerf.cli", "demo", "-o", str(folder), "--device", args.device], args.demo_limit)
+    return _demo_result(folder, code, out, seconds)
 
 
 def step_render(args: argparse.Namespace) -> dict:
@@ -175,15 +183,7 @@ def step_demo_scaled(args: argparse.Namespace) -> dict:
             "import sys; from adnerf.commands.demo import run_demo; from adnerf.model.train_config import TrainConfig; "
             f"run_demo(sys.argv[1], device={args.device!r}, train_config=TrainConfig().scaled({k}), progress=False)"
         )
-        code, out, seconds = _run([sys.executable, "-c", script, str(folder)], args.demo_limit)
-        row: dict = {"exit_code": code, "wall_seconds": seconds}
-        if (folder / "metrics.json").exists():
-            metrics = json.loads((folder / "metrics.json").read_text())
-            row.update({key: metrics.get(key) for key in ("psnr_test", "psnr_mouth_test", "mouth_open_corr", "blink_corr", "train_seconds", "render_fps")})
-            row["schedule"] = {key: metrics["train"][key] for key in ("rays", "head_iters", "torso_iters")}
-        else:
-            row["output_tail"] = out[-2000:]
-        result[f"x{k}"] = row
+        result[f"x{k}"] = _demo_result(folder, *_run([sys.executable, "-c", script, str(folder)], args.demo_limit))
     return result
 
 
