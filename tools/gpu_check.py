@@ -20,8 +20,8 @@ what it measured), each with its own time limit:
    ``k`` of ``--demo-scales`` (``k`` times the rays in ``k`` times fewer steps): time and bars.
 6. ``real``: with ``--real DATA`` (a preprocessed real clip), a run trained on the GPU with
    ``TrainConfig(HEAD, TORSO).scaled(K)`` (``--real-iters HEAD,TORSO``, ``--real-scale K``), its
-   training time and its held-out metrics without the landmark ones (``adnerf evaluate --no-landmarks``); the run stays
-   in the scratch folder for the landmark metrics elsewhere.
+   training time and its held-out metrics without the landmark ones (``adnerf evaluate
+   --no-landmarks``); the run stays in the scratch folder for the landmark metrics elsewhere.
 7. ``bench_render``: ``adnerf bench render --device cuda`` (quadrature error and time per Mray).
 8. ``fields``: a shortened ``adnerf bench fields --device cuda`` (held-out PSNR against time).
 
@@ -51,6 +51,19 @@ def _run(cmd: list[str], limit: float) -> tuple[int, str, float]:
     except subprocess.TimeoutExpired as exc:
         out = (exc.stdout or b"").decode(errors="replace") if isinstance(exc.stdout, bytes) else (exc.stdout or "")
         return 124, out + f"\n(stopped after {limit:.0f} s)", time.perf_counter() - t0
+
+
+def _sync(device: str) -> None:
+    """Wait for the device's queued work (timings on CUDA)."""
+    if device.startswith("cuda"):
+        import torch
+
+        torch.cuda.synchronize()
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    """A comma-separated list of integers (an option's value)."""
+    return tuple(int(x) for x in text.split(",") if x)
 
 
 def _json_lines(text: str) -> list[dict]:
@@ -113,10 +126,6 @@ def step_render(args: argparse.Namespace) -> dict:
     frames = list(ds.meta.test)
     result: dict = {"size": size, "frames": len(frames)}
 
-    def sync() -> None:
-        if args.device == "cuda":
-            torch.cuda.synchronize()
-
     for torso in (True, False):
         for chunk in (262144,):  # 1024 (the CPU's) gave 0.8 frames/s on an H100, 65536 19-22
             def one(i: int) -> None:
@@ -125,12 +134,12 @@ def step_render(args: argparse.Namespace) -> dict:
 
             for i in range(3):  # warm-up
                 one(i)
-            sync()
+            _sync(args.device)
             t0, n = time.perf_counter(), 0
             while n < 10 or (time.perf_counter() - t0 < 5.0 and n < 200):
                 one(n)
                 n += 1
-            sync()
+            _sync(args.device)
             key = f"{'head_torso' if torso else 'head'}_chunk{chunk}_fps"
             result[key] = n / (time.perf_counter() - t0)
     if args.device == "cuda":
@@ -159,12 +168,10 @@ def step_steps(args: argparse.Namespace) -> dict:
         if adam == "foreach":
             trainer.opt_head = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in trainer.opt_head.param_groups], betas=(0.9, 0.99))
         trainer.head_stage(warm)  # past occupancy_start: empty-space skipping on, as in most of a run
-        if args.device == "cuda":
-            torch.cuda.synchronize()
+        _sync(args.device)
         t0 = time.perf_counter()
         trainer.head_stage(timed)
-        if args.device == "cuda":
-            torch.cuda.synchronize()
+        _sync(args.device)
         rows.append({"rays": rays, "adam": adam, "seconds_per_iteration": (time.perf_counter() - t0) / timed, "eye_batch": bool(trainer.blinking.numel())})
     return {"stage": "head", "rows": rows}
 
@@ -194,19 +201,18 @@ def step_real(args: argparse.Namespace) -> dict:
     from adnerf.model.data import load_dataset
     from adnerf.model.train import TrainConfig, load_run, train
 
-    head, torso = (int(v) for v in args.real_iters.split(","))
+    import torch
+
+    head, torso = args.real_iters
     tcfg = TrainConfig(head_iters=head, torso_iters=torso).scaled(args.real_scale)
-    head, torso = tcfg.head_iters, tcfg.torso_iters
     run_dir = Path(args.work) / "real_run"
     t0 = time.perf_counter()
     train(args.real, run_dir, config=tcfg, device=args.device, progress=False)
     seconds = time.perf_counter() - t0
-    import torch
-
     elapsed = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["elapsed"]  # seconds in each stage's loop
     metrics, _ = evaluate_run(load_run(run_dir, args.device), load_dataset(args.real), "test", landmarks=False)
     keep = ("frames", "psnr", "ssim", "psnr_mouth", "ssim_mouth", "psnr_head", "ssim_head", "render_fps")
-    return {"schedule": {"rays": tcfg.rays, "head_iters": head, "torso_iters": torso}, "train_wall_seconds": seconds, "loop_seconds": elapsed, "run": str(run_dir), **{k: metrics.get(k) for k in keep}}
+    return {"schedule": {"rays": tcfg.rays, "head_iters": tcfg.head_iters, "torso_iters": tcfg.torso_iters}, "train_wall_seconds": seconds, "loop_seconds": elapsed, "run": str(run_dir), **{k: metrics.get(k) for k in keep}}
 
 
 def step_bench_render(args: argparse.Namespace) -> dict:
@@ -232,12 +238,12 @@ def main() -> int:
     parser.add_argument("--render-size", type=int, default=450, help="frame side for the render speed (default 450, as AD-NeRF)")
     parser.add_argument("--fields-budget", type=float, default=30.0, help="training seconds per configuration in the fields bench (default 30)")
     parser.add_argument("--fields-configs", default="paper,fast", help="configurations of the fields bench (default paper,fast)")
-    parser.add_argument("--steps-rays", default=(1024, 2048, 4096, 8192), type=lambda v: tuple(int(x) for x in v.split(",")), help="rays per iteration of the steps step (default 1024,2048,4096,8192)")
-    parser.add_argument("--steps-counts", default=(60, 60), type=lambda v: tuple(int(x) for x in v.split(",")), help="WARM,TIMED iterations per ray count of the steps step (default 60,60)")
+    parser.add_argument("--steps-rays", default=(1024, 2048, 4096, 8192), type=_ints, help="rays per iteration of the steps step (default 1024,2048,4096,8192)")
+    parser.add_argument("--steps-counts", default=(60, 60), type=_ints, help="WARM,TIMED iterations per ray count of the steps step (default 60,60)")
     parser.add_argument("--real", default=None, help="a preprocessed real clip (dataset folder) to train on the GPU (the real step)")
-    parser.add_argument("--real-iters", default="4345,3555", help="HEAD,TORSO iterations of the real step's schedule before --real-scale (default 4345,3555: the README's CPU bench)")
+    parser.add_argument("--real-iters", default=(4345, 3555), type=_ints, help="HEAD,TORSO iterations of the real step's schedule before --real-scale (default 4345,3555: the README's CPU bench)")
     parser.add_argument("--real-scale", type=int, default=1, help="the real step trains TrainConfig(HEAD, TORSO).scaled(this): this many times the rays in as many times fewer steps (default 1)")
-    parser.add_argument("--demo-scales", default=(), type=lambda v: tuple(int(x) for x in v.split(",") if x), help="demo_scaled step: scales k of TrainConfig().scaled(k) to train the demo's scene with (default none)")
+    parser.add_argument("--demo-scales", default=(), type=_ints, help="demo_scaled step: scales k of TrainConfig().scaled(k) to train the demo's scene with (default none)")
     args = parser.parse_args()
 
     import torch
