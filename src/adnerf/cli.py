@@ -147,6 +147,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
             minutes=args.minutes,
             device=_device(args.device),
             cut=args.cut,
+            clothes=args.clothes,
             features=args.features,
             test_fraction=args.test_fraction,
             focal=args.focal,
@@ -292,9 +293,9 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
     from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
-    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, focal=args.focal, test_fraction=args.test_fraction)
+    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, clothes=args.clothes, focal=args.focal, test_fraction=args.test_fraction)
     report = preprocess_video(args.video, args.output, cfg, progress=step_bars(), overwrite=args.overwrite)
-    keys = ("frames", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "layers", "layers_warning", "pose_reprojection_rms_px", "plate_filled_fraction", "timings_s")
+    keys = ("frames", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "face_clothes", "layers", "layers_warning", "torso", "torso_warning", "pose_reprojection_rms_px", "plate_filled_fraction", "timings_s")
     print(json.dumps({k: report[k] for k in keys if k in report}, indent=1))
     print(f"{args.output}: dataset written (report: {args.output}/preprocess_report.json, .png)")
     return 0
@@ -508,6 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
     real.add_argument("--minutes", type=_number(float, 0.0, 10000.0, open_lo=True), default=10.0, help="training budget for both stages, minutes of training time")
     real.add_argument("--device", default="cpu", help="cpu or cuda")
     real.add_argument("--cut", choices=("jaw", "neck-row"), default="jaw", help="head / torso cut of the preprocessing (neck-row: the earlier cut, to compare)")
+    real.add_argument("--clothes", choices=("grabcut", "none"), default="grabcut", help="clothes completion of the preprocessing (none: as before it existed, to compare)")
     real.add_argument("--features", choices=("logmel", "phonemes"), default="logmel", help="audio features of the dataset")
     real.add_argument("--test-fraction", type=_number(float, 0.0, 0.5, open_lo=True), default=0.15, help="fraction of the clip held out at its end, in (0, 0.5]")
     real.add_argument("--focal", type=_positive, default=None, help="focal length in pixels at --size (default: preprocessing's guess)")
@@ -575,6 +577,7 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--face", default="dlib", help="face box and 68 landmarks: dlib (default; HOG detector and the 68-point model of the face-recognition-models package), dlib:PREDICTOR.dat (your own 68-point model) or none")
     pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
     pre.add_argument("--cut", choices=("jaw", "neck-row"), default="jaw", help="where head meets torso for the classical parser: the landmarks' jaw line, or the silhouette's narrowest row (the earlier cut, for comparisons)")
+    pre.add_argument("--clothes", choices=("grabcut", "none"), default="grabcut", help="clothes the classical parser took for background (they never move): grabcut (default) adds them to the torso by colour below the chin; none leaves them")
     pre.add_argument("--focal", type=_positive, default=None, help="focal length in pixels, > 0 (default 1.33 x the larger frame side)")
     pre.add_argument("--test-fraction", type=_number(float, 0.0, 0.9, open_lo=True), default=0.1, help="fraction of frames at the end held out for testing, in (0, 0.9]")
     pre.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the video)")

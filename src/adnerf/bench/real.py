@@ -159,6 +159,7 @@ def bench_real(
     minutes: float = 10.0,
     device: str = "cpu",
     cut: str = "jaw",
+    clothes: str = "grabcut",
     features: str = "logmel",
     test_fraction: float = 0.15,
     focal: float | None = None,
@@ -180,10 +181,12 @@ def bench_real(
         minutes: Training budget (both stages), minutes of training time.
         device: ``"cpu"`` or ``"cuda"``.
         cut: Head / torso cut of the preprocessing (``"jaw"``, or ``"neck-row"`` to compare).
+        clothes: Clothes completion of the preprocessing (``"grabcut"``, or ``"none"`` to compare).
         features: Audio features of the dataset (``"logmel"`` or ``"phonemes"``).
         test_fraction: Fraction of the clip, at its end, held out.
         focal: Focal length in pixels at ``size`` (default: preprocessing's guess).
-        work: Folder for the cached video, dataset and run (``<stem>_<size>_<cut>/`` inside).
+        work: Folder for the cached video, dataset and run (``<stem>_<size>_<cut>/`` inside;
+            ``_noclothes`` appended without the clothes completion).
         lpips_backbone: AlexNet weights for LPIPS (default: the torch hub cache's, if there).
         lpips_linear: LPIPS linear layers (default: the installed ``lpips`` package's, if any).
         syncnet: SyncNet checkpoint for LSE-D / LSE-C (:mod:`adnerf.evaluation.syncnet`; none: "no weights").
@@ -211,7 +214,7 @@ def bench_real(
         if not Path(path).is_file():
             raise ValueError(f"{path}: no such audio file to drive the run with")
     seconds: dict[str, float] = {}
-    folder = Path(work) / (f"{Path(video).stem}_{size or 'native'}_{cut}" + ("" if features == "logmel" else f"_{features}"))
+    folder = Path(work) / (f"{Path(video).stem}_{size or 'native'}_{cut}" + ("" if features == "logmel" else f"_{features}") + ("" if clothes == "grabcut" else "_noclothes"))
     folder.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()
@@ -219,15 +222,17 @@ def bench_real(
     seconds["video"] = time.perf_counter() - t0
 
     data = folder / "data"
-    pcfg = PreprocessConfig(cut=cut, features=features, test_fraction=test_fraction, focal=focal)
+    pcfg = PreprocessConfig(cut=cut, clothes=clothes, features=features, test_fraction=test_fraction, focal=focal)
+    run_dir = folder / (f"run_{iterations[0]}+{iterations[1]}it_seed{seed}" if iterations else f"run_{minutes:g}min_seed{seed}")
     t0 = time.perf_counter()
     report_path = data / "preprocess_report.json"
     if not (report_path.exists() and json.loads(report_path.read_text())["config"] == asdict(pcfg)):
+        if (run_dir / "run.json").exists():  # it would go on training on a dataset it was not started on
+            raise ValueError(f"{run_dir} was trained on the dataset of other preprocessing settings; remove it (or choose another --work) to train afresh")
         log(f"preprocessing {clip} into {data}")
         preprocess_video(clip, data, pcfg, progress=step_bars() if progress else None, overwrite=data.exists())
     seconds["preprocess"] = time.perf_counter() - t0
 
-    run_dir = folder / (f"run_{iterations[0]}+{iterations[1]}it_seed{seed}" if iterations else f"run_{minutes:g}min_seed{seed}")
     t0 = time.perf_counter()
     if (run_dir / "run.json").exists():
         log(f"continuing the run in {run_dir}")
@@ -283,6 +288,7 @@ def bench_real(
         **info,
         "size": size,
         "cut": cut,
+        "clothes": clothes,
         "features": features,
         "held_out_frames": len(ds.meta.test),
         "train_frames": len(ds.meta.train),

@@ -222,6 +222,7 @@ class BiSeNetParser:
             raise ValueError("BiSeNet input size must be >= 32 and batch >= 1")
         self.name = f"bisenet:{checkpoint}"
         self.cuts_at_jaw = True  # its skin / neck classes meet at the jaw
+        self.finds_clothes = True  # it has a cloth class
         self.net = load_bisenet(checkpoint, device)
         self.device, self.size, self.batch = torch.device(device), size, batch
 

@@ -58,6 +58,7 @@ class MediapipeParser:
     model_selection: int = 0
     name: str = "mediapipe"
     cuts_at_jaw: bool = True  # the face mesh gives the jaw line
+    finds_clothes: bool = True  # the selfie segmentation labels the whole person by appearance
 
     def parse(self, frames: np.ndarray, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
         mp = import_mediapipe()

@@ -22,7 +22,7 @@ from scipy.ndimage import uniform_filter1d
 
 from ..model.data import LABEL_HEAD, LABEL_TORSO
 
-__all__ = ["Parser", "ClassicalParser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "torso_check", "person_hull", "JAW_MARGIN", "SHOULDER_HALF_WIDTH"]
+__all__ = ["Parser", "ClassicalParser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "torso_check", "person_hull", "grabcut_clip", "face_widths", "JAW_MARGIN", "SHOULDERS_BELOW_CHIN", "SHOULDER_HALF_WIDTH"]
 
 Progress = Callable[[int, int], None]
 
@@ -34,10 +34,14 @@ class Parser(Protocol):
         name: The backend's name (as ``--parser`` takes it).
         cuts_at_jaw: Whether its head / torso boundary follows the jaw (a learned parser, a face
             mesh); otherwise ``adnerf preprocess`` re-splits along the 68 landmarks' jaw line.
+        finds_clothes: Whether it labels clothes that never move as person (it segments by
+            appearance); otherwise ``adnerf preprocess`` adds them below the chin
+            (:mod:`adnerf.preprocess.clothes`).
     """
 
     name: str
     cuts_at_jaw: bool
+    finds_clothes: bool
 
     def parse(self, frames: np.ndarray, progress: Progress | None = None) -> np.ndarray:
         """Label maps ``(N, H, W)`` uint8 in {0, 1, 2} for RGB frames ``(N, H, W, 3)`` uint8."""
@@ -241,9 +245,17 @@ def layer_check(labels: np.ndarray, landmarks: np.ndarray) -> dict:
 
 
 SHOULDER_HALF_WIDTH = 1.0  # face widths each side of the chin that shoulders cover at least
+# A frame shows shoulders when its bottom edge lies at least this many face widths below the chin
+# (the shared sample clip's lies 0.29-0.42 below hers and shows her jacket across it).
+SHOULDERS_BELOW_CHIN = 0.25
 
 
-def torso_check(labels: np.ndarray, landmarks: np.ndarray, below_chin: float = 0.25) -> dict:
+def face_widths(landmarks: np.ndarray) -> np.ndarray:
+    """``(N,)`` face widths in pixels: the distance between landmarks 0 and 16 (NaN without a face)."""
+    return np.linalg.norm(landmarks[:, 16] - landmarks[:, 0], axis=-1)
+
+
+def torso_check(labels: np.ndarray, landmarks: np.ndarray, below_chin: float = SHOULDERS_BELOW_CHIN) -> dict:
     """Whether the clothes are in the person: how much of the frame's bottom row under the face is
     labelled person.
 
@@ -258,9 +270,7 @@ def torso_check(labels: np.ndarray, landmarks: np.ndarray, below_chin: float = 0
         landmarks: ``(N, 68, 2)`` landmarks (pixel centres at ``+0.5``); frames without a face
             (NaN) are left out.
         below_chin: Frames whose bottom row is closer than this many face widths below the chin
-            (the face reaches the edge: no shoulders to see) are left out. The shared sample
-            clip's bottom edge is 0.29-0.42 face widths below her chin, and already shows her
-            jacket across it.
+            (the face reaches the edge: no shoulders to see) are left out.
 
     Returns:
         ``person_at_bottom`` (the median over frames of the labelled fraction of that span),
@@ -319,6 +329,7 @@ class ClassicalParser:
     max_stat_frames: int = 80
     name: str = "classical"
     cuts_at_jaw: bool = False  # cuts at the neck's row; the pipeline re-splits with landmarks
+    finds_clothes: bool = False  # finds the person by motion; the pipeline completes the torso
 
     def parse(self, frames: np.ndarray, progress: Progress | None = None) -> np.ndarray:
         # GrabCut's k-means draws from OpenCV's per-thread global RNG: reset it, so a clip parses
@@ -333,7 +344,7 @@ class ClassicalParser:
         moving = cv2.morphologyEx(moving.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
         hull = person_hull(moving, self.hull_margin)
         total = 2 * n
-        person = self._cut_all(frames, [self._hull_seeds(hull)] * n, stat, progress, 0, total)
+        person = grabcut_clip(frames, [self._hull_seeds(hull)] * n, stat, progress, 0, total)
         plate, seen = self._plate(frames, person)
         plate_lab = _lab(plate[None])[0]
         seeds = []
@@ -345,7 +356,7 @@ class ClassicalParser:
             m[seen & (d < self.plate_low) & hull] = cv2.GC_PR_BGD
             m[~hull] = np.where(m[~hull] == cv2.GC_FGD, cv2.GC_PR_FGD, cv2.GC_BGD)
             seeds.append(m)
-        person = self._cut_all(frames, seeds, stat, progress, n, total)
+        person = grabcut_clip(frames, seeds, stat, progress, n, total)
         labels = np.empty((n, h, w), np.uint8)
         for i in range(n):
             sil = _fill_holes(_largest_component(person[i]))
@@ -360,32 +371,51 @@ class ClassicalParser:
         return m
 
     @staticmethod
-    def _cut_all(frames: np.ndarray, seeds: list[np.ndarray], stat: np.ndarray, progress: Progress | None, done: int, total: int) -> np.ndarray:
-        """GrabCut every frame with colour models fitted on a few frames and then frozen."""
-        bgd = np.zeros((1, 65), np.float64)
-        fgd = np.zeros((1, 65), np.float64)
-        fit = stat[np.linspace(0, len(stat) - 1, min(4, len(stat))).round().astype(int)]
-        strip = np.concatenate([cv2.cvtColor(frames[i], cv2.COLOR_RGB2BGR) for i in fit], 1)
-        strip_mask = np.concatenate([seeds[i] for i in fit], 1).copy()
-        if not _has_both(strip_mask):
-            return np.isin(np.stack(seeds), (cv2.GC_FGD, cv2.GC_PR_FGD))
-        cv2.grabCut(strip, strip_mask, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
-        out = np.empty((len(frames),) + frames.shape[1:3], bool)
-        for i, frame in enumerate(frames):
-            m = seeds[i].copy()
-            if _has_both(m):
-                cv2.grabCut(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), m, None, bgd, fgd, 1, cv2.GC_EVAL_FREEZE_MODEL)
-            out[i] = np.isin(m, (cv2.GC_FGD, cv2.GC_PR_FGD))
-            if progress is not None:
-                progress(done + i + 1, total)
-        return out
-
-    @staticmethod
     def _plate(frames: np.ndarray, person: np.ndarray, margin: int = 2) -> tuple[np.ndarray, np.ndarray]:
         from .plate import median_plate
 
         plate, count = median_plate(frames, person, margin=margin)
         return plate, count > 0
+
+
+def grabcut_clip(frames: np.ndarray, seeds: list[np.ndarray], stat: np.ndarray, progress: Progress | None = None, done: int = 0, total: int | None = None) -> np.ndarray:
+    """GrabCut every frame of a clip with colour models fitted once and then frozen.
+
+    The two colour models (5-component GMMs) are fitted on up to four of the ``stat`` frames side
+    by side (3 iterations), then every frame is cut with them frozen (one graph cut each), so the
+    frames of a clip are cut alike and fast.
+
+    Args:
+        frames: ``(N, H, W, 3)`` uint8 RGB.
+        seeds: ``N`` masks ``(H, W)`` uint8 of OpenCV's GrabCut classes (``GC_BGD``, ``GC_FGD``,
+            ``GC_PR_BGD``, ``GC_PR_FGD``).
+        stat: Indices of the frames the fit may draw from.
+        progress: Called with ``(done + i + 1, total)`` after frame ``i``.
+        done: Offset of the progress count.
+        total: The progress total (``N`` when ``None``).
+
+    Returns:
+        ``(N, H, W)`` bool, True where the cut says foreground. When the fit frames' seeds lack
+        either class, no cut is made and the seeds' foreground is returned.
+    """
+    total = len(frames) if total is None else total
+    bgd = np.zeros((1, 65), np.float64)
+    fgd = np.zeros((1, 65), np.float64)
+    fit = stat[np.linspace(0, len(stat) - 1, min(4, len(stat))).round().astype(int)]
+    strip = np.concatenate([cv2.cvtColor(frames[i], cv2.COLOR_RGB2BGR) for i in fit], 1)
+    strip_mask = np.concatenate([seeds[i] for i in fit], 1).copy()
+    if not _has_both(strip_mask):
+        return np.isin(np.stack(seeds), (cv2.GC_FGD, cv2.GC_PR_FGD))
+    cv2.grabCut(strip, strip_mask, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
+    out = np.empty((len(frames),) + frames.shape[1:3], bool)
+    for i, frame in enumerate(frames):
+        m = seeds[i].copy()
+        if _has_both(m):
+            cv2.grabCut(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), m, None, bgd, fgd, 1, cv2.GC_EVAL_FREEZE_MODEL)
+        out[i] = np.isin(m, (cv2.GC_FGD, cv2.GC_PR_FGD))
+        if progress is not None:
+            progress(done + i + 1, total)
+    return out
 
 
 def _has_both(mask: np.ndarray) -> bool:

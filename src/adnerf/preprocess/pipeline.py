@@ -53,6 +53,7 @@ from ..model.data import (
     write_wav,
 )
 from ..outputs import OutputError, check_folder_output
+from .clothes import complete_torso
 from .headpose import project_points
 from .landmarks import NOSE_BASE, eye_centres_px, eye_openness, mouth_centres
 from .parsing import JAW_MARGIN, layer_check, split_at_landmarks, torso_check
@@ -66,7 +67,8 @@ LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN = 0.98, 0.9
 # Below this median share of the bottom edge under the face labelled person, the report warns that
 # clothes were taken for background (parsing.torso_check). On the shared sample clip the mediapipe
 # parser scores 1.0 (worst frame 0.97), the classical parser 0.73 (worst 0.33: her dark jacket
-# never moves); on the synthetic test clip the truth scores 1.0, the classical parser 0.78.
+# never moves) and 1.0 (worst 0.95) once the clothes are completed (clothes.complete_torso); on
+# the synthetic test clip the truth scores 1.0, the classical parser 0.78 without completion.
 PERSON_AT_BOTTOM_MIN = 0.8
 FEATURE_CHOICES = ("logmel", "phonemes", "none")
 
@@ -91,6 +93,9 @@ class PreprocessConfig:
         cut: Where head meets torso when the parser does not cut at the jaw itself: ``"jaw"``
             (the landmarks' jaw line; needs ``face``) or ``"neck-row"`` (the silhouette's
             narrowest row, as before the jaw cut existed: for comparisons).
+        clothes: When the parser finds the person by motion (the classical one) and landmarks are
+            there: ``"grabcut"`` adds the clothes it took for background to the torso layer
+            (:mod:`adnerf.preprocess.clothes`); ``"none"`` leaves the parse as it is.
         focal: Focal length in pixels; ``None`` assumes ``1.33 * max(width, height)`` (a 41 degree
             field of view; the synthetic scene's camera). Pose accuracy depends on it: give the
             real value when it is known.
@@ -112,6 +117,7 @@ class PreprocessConfig:
     face: str = "dlib"
     flow: str = "dis"
     cut: str = "jaw"
+    clothes: str = "grabcut"
     focal: float | None = None
     test_fraction: float = 0.1
     head_width: float = 1.6
@@ -140,6 +146,8 @@ class PreprocessConfig:
                 raise PreprocessError(str(exc)) from exc
         if self.parser.startswith("bisenet:") and not Path(self.parser.split(":", 1)[1]).is_file():
             raise PreprocessError(f"--parser {self.parser}: no checkpoint file there (adnerf downloads no weights; give your 19-class face-parsing BiSeNet .pth)")
+        if self.clothes not in ("grabcut", "none"):
+            raise PreprocessError(f"--clothes must be grabcut or none; got {self.clothes!r}")
         if self.cut not in ("jaw", "neck-row"):
             raise PreprocessError(f"--cut must be jaw or neck-row; got {self.cut!r}")
         if self.face not in ("dlib", "none") and not self.face.startswith("dlib:"):
@@ -159,7 +167,7 @@ _STEP_KEYS = {
     "decode": ("min_seconds",),
     "features": ("features",),
     "parse": ("parser", "min_face_fraction"),
-    "face": ("face", "cut"),
+    "face": ("face", "cut", "clothes"),
     "pose": ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "smooth_sigma", "pose_segment", "pose_overlap"),
     "plate": (),
     "write": ("test_fraction",),
@@ -315,6 +323,7 @@ def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) ->
     doc = {
         "parser": parser.name,
         "cuts_at_jaw": bool(getattr(parser, "cuts_at_jaw", False)),
+        "finds_clothes": bool(getattr(parser, "finds_clothes", False)),
         "face_frames": int(face.sum()),
         "face_failures": int((~face).sum()),
         "camera_motion_px_per_frame": motion,
@@ -354,8 +363,12 @@ def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> 
         )
     work.save("landmarks", track.landmarks)
     resplit = not parser_cut and config.cut == "jaw"  # the parser cut at a row: the mouth and chin may lie below it
-    if resplit:
-        work.save("layers", split_at_landmarks(labels, track.landmarks))
+    layers = split_at_landmarks(labels, track.landmarks) if resplit else labels
+    clothes = None
+    if config.clothes == "grabcut" and not work.load_json("parse").get("finds_clothes", False):
+        layers, clothes = complete_torso(frames, layers, track.landmarks, progress=lambda d, t: bar("face", d, t))
+    if resplit or clothes is not None:
+        work.save("layers", layers)
     doc = {
         "backend": detector.name,
         "head_torso_cut": f"the jaw line of the 68 landmarks, {JAW_MARGIN:.0%} of the face width below it" if resplit else "the parser's own" if parser_cut else "the silhouette's narrowest row (--cut neck-row)",
@@ -363,6 +376,7 @@ def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> 
         "interpolated": n - found,
         "score_median": float(np.nanmedian(track.scores)),
         "box_width_median_px": float(np.median(track.boxes[:, 2] - track.boxes[:, 0])),
+        "clothes": "left as parsed" if clothes is None else {"completed_by": "grabcut below the chin (adnerf.preprocess.clothes)", **clothes},
     }
     work.save_json("face", doc)
     return doc
@@ -603,7 +617,9 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
                 f"only {share:.0%} of the frame's bottom edge under the face (a face width either side of the chin) is labelled person "
                 f"(the worst frame {report['torso']['person_at_bottom_worst']:.0%}): clothes were probably taken for background and will be rendered as the plate (see preprocess_report.png). "
                 + (
-                    "The classical parser finds the person by motion, and clothes that never move look like the wall; --parser mediapipe segments the person by appearance"
+                    "The classical parser finds the person by motion, and clothes that never move look like the wall; "
+                    + ("--clothes grabcut adds them back by colour, or " if config.clothes == "none" else "adding them back by colour did not find them either (a colour like the wall's?); ")
+                    + "--parser mediapipe segments the person by appearance"
                     if config.parser == "classical"
                     else "Check the parsing of this clip"
                 ),
