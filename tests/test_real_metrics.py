@@ -176,6 +176,13 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
         bench_real(clip, size=None, minutes=0.05, work=tmp_path / "never", syncnet=linear_path, progress=False, log=lambda m: None)
     assert not (tmp_path / "never").exists()
     assert again["psnr"] == pytest.approx(row["psnr"], abs=1e-6)  # the same run, rendered again
+    # Other preprocessing settings in the same work folder: the run is not continued on a dataset it
+    # was not started on, and the dataset is left as it was.
+    stamp = (Path(row["dataset"]) / "preprocess_report.json").stat().st_mtime_ns
+    with pytest.raises(ValueError, match="other preprocessing settings"):
+        bench_real(clip, size=None, minutes=0.05, test_fraction=0.2, work=tmp_path / "work", progress=False, log=lambda m: None)
+    assert (Path(row["dataset"]) / "preprocess_report.json").stat().st_mtime_ns == stamp
+    assert row["clothes"] == "grabcut" and "_noclothes" not in row["dataset"]
     # adnerf evaluate reports the same metrics for the run and its dataset.
     assert main(["evaluate", row["run"], row["dataset"], "--json", "--lpips-backbone", str(backbone_path), "--lpips-linear", str(linear_path), "--syncnet", str(syncnet_path)]) == 0
     ev = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
