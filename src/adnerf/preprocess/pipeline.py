@@ -366,7 +366,7 @@ def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> 
     layers = split_at_landmarks(labels, track.landmarks) if resplit else labels
     clothes = None
     if config.clothes == "grabcut" and not work.load_json("parse").get("finds_clothes", False):
-        layers, clothes = complete_torso(frames, layers, track.landmarks, progress=lambda d, t: bar("face", d, t))
+        layers, clothes = complete_torso(frames, layers, track.landmarks, progress=lambda d, t: bar("face: clothes", d, t))
     if resplit or clothes is not None:
         work.save("layers", layers)
     doc = {
