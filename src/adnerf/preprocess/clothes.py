@@ -127,14 +127,17 @@ def complete_torso(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray
     # The colours of the clothes (the bottom strip) and of the wall beside the head decide where
     # GrabCut starts: a pixel below the chin nearer the clothes starts as probably person, and a
     # background seed that looks like the clothes (a shoulder risen above the chin) is not sure.
-    lab = cv2.cvtColor(np.ascontiguousarray(frames[valid, top:]).reshape(-1, w, 3), cv2.COLOR_RGB2LAB).reshape(len(valid), h - top, w, 3).astype(np.float32)
-    clothes = _centres(np.concatenate([lab[k][seeds[k] == STRIP] for k in fit]))
-    wall = _centres(np.concatenate([lab[k][seeds[k] == cv2.GC_BGD] for k in fit]))
+    def lab(i: int) -> np.ndarray:  # one frame's band in Lab, float32 (a frame at a time: the clip's would be 12 bytes a pixel)
+        return cv2.cvtColor(np.ascontiguousarray(frames[i, top:]), cv2.COLOR_RGB2LAB).astype(np.float32)
+
+    fit_lab = {k: lab(valid[k]) for k in fit}
+    clothes = _centres(np.concatenate([fit_lab[k][seeds[k] == STRIP] for k in fit]))
+    wall = _centres(np.concatenate([fit_lab[k][seeds[k] == cv2.GC_BGD] for k in fit]))
     rows = np.arange(h)[:, None] + 0.5
     anchors = []
     for k, i in enumerate(valid):
         m = seeds[k]
-        like = _nearer_clothes(lab[k], clothes, wall)
+        like = _nearer_clothes(fit_lab[k] if k in fit_lab else lab(i), clothes, wall)
         m[(m == cv2.GC_BGD) & like] = cv2.GC_PR_BGD
         m[(m == cv2.GC_PR_BGD) & like & (rows[top:] > chin[i, 1])] = cv2.GC_PR_FGD
         anchor = labels[i] > 0  # what the added pixels must join: the parsed person or the strip

@@ -189,6 +189,11 @@ JAW, CHIN, LIPS, CHIN_TIP, LOWER_LIP, NECK_SPAN = slice(0, 17), slice(6, 11), sl
 JAW_MARGIN = 0.04  # the cut's margin below the jaw line, as a fraction of the face width (landmarks 0 to 16)
 
 
+def face_widths(landmarks: np.ndarray) -> np.ndarray:
+    """``(N,)`` face widths in pixels: the distance between landmarks 0 and 16 (NaN without a face)."""
+    return np.linalg.norm(landmarks[:, 16] - landmarks[:, 0], axis=-1)
+
+
 def split_at_landmarks(labels: np.ndarray, landmarks: np.ndarray, margin: float = JAW_MARGIN) -> np.ndarray:
     """Re-split every frame's person (head + torso) along the jaw line of its 68 landmarks.
 
@@ -202,9 +207,10 @@ def split_at_landmarks(labels: np.ndarray, landmarks: np.ndarray, margin: float 
         between landmarks 4 and 12 and at the chin's row beside them).
     """
     out = np.empty_like(labels)
+    widths = face_widths(landmarks)
     for i in range(len(labels)):
         lm = landmarks[i]
-        width = float(np.linalg.norm(lm[16] - lm[0]))
+        width = float(widths[i])
         span = (float(lm[NECK_SPAN, 0].min()), float(lm[NECK_SPAN, 0].max()))
         out[i] = split_at_jaw(labels[i] > 0, lm, margin * width if np.isfinite(width) else 0.0, neck_span=span)
     return out
@@ -250,11 +256,6 @@ SHOULDER_HALF_WIDTH = 1.0  # face widths each side of the chin that shoulders co
 SHOULDERS_BELOW_CHIN = 0.25
 
 
-def face_widths(landmarks: np.ndarray) -> np.ndarray:
-    """``(N,)`` face widths in pixels: the distance between landmarks 0 and 16 (NaN without a face)."""
-    return np.linalg.norm(landmarks[:, 16] - landmarks[:, 0], axis=-1)
-
-
 def torso_check(labels: np.ndarray, landmarks: np.ndarray, below_chin: float = SHOULDERS_BELOW_CHIN) -> dict:
     """Whether the clothes are in the person: how much of the frame's bottom row under the face is
     labelled person.
@@ -278,12 +279,13 @@ def torso_check(labels: np.ndarray, landmarks: np.ndarray, below_chin: float = S
         are ``None`` when none was).
     """
     n, h, w = labels.shape
+    widths = face_widths(landmarks)
     fractions = []
     for i in range(n):
         lm = landmarks[i]
         if not np.isfinite(lm).all():
             continue
-        width = float(np.linalg.norm(lm[16] - lm[0]))
+        width = float(widths[i])
         chin_x, chin_y = float(lm[CHIN_TIP, 0]), float(lm[CHIN_TIP, 1])
         if not width > 0 or h - chin_y < below_chin * width:
             continue
