@@ -215,11 +215,11 @@ class _Work:
 Bar = Callable[[str, int, int], None]
 
 
-
 def _report_warning(doc: dict, key: str, msg: str) -> None:
     """Keep a warning in a report (``doc[key]``) and print it on stderr."""
     doc[key] = msg
     print(f"warning: {msg}", file=sys.stderr)
+
 
 def step_bars() -> Bar:
     """A ``progress`` for :func:`preprocess_video` that shows one progress bar per step."""
