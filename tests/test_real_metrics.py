@@ -51,6 +51,18 @@ def test_landmark_metrics_known_answers() -> None:
     m = landmark_metrics(moved, true)
     assert m.lmd_mouth_px == pytest.approx(5.0) and m.lmd_all_px == pytest.approx(5.0 * 20 / 68)
     assert m.face_width_px == pytest.approx(80.0) and m.lmd_mouth == pytest.approx(5.0 / 80.0)
+    # Moving the whole mouth leaves its shape right; the still mouth is wrong by its moving lips.
+    assert m.lmd_mouth_shape_px == pytest.approx(0.0, abs=1e-12) and same.lmd_mouth_shape_px == 0.0
+    # Only the three lower inner-lip points move (by the opening o_t, in y): centred on the mouth's
+    # centroid, those three move by (1 - 3/20) (o_t - mean o) and the other 17 by -3/20 of it.
+    d = np.abs(mouth_opening(true) - mouth_opening(true).mean())
+    still = float((3 * (1 - 3 / 20) + 17 * 3 / 20) / 20 * d.mean())
+    assert m.lmd_mouth_still_px == pytest.approx(still) and still > 0.2
+    # A mouth that never opens scores the still mouth's figure when it holds the mean shape.
+    held = true.copy()
+    held[:, 48:68] = true[:, 48:68].mean(axis=0)
+    held[:, 48:68] += true[:, 48:68].mean(axis=1, keepdims=True) - held[:, 48:68].mean(axis=1, keepdims=True)
+    assert landmark_metrics(held, true).lmd_mouth_shape_px == pytest.approx(still)
     # A render whose mouth moves 2 frames late: the offset says +2, the other way round -2.
     late = np.concatenate([true[:2], true[:-2]])
     assert landmark_metrics(late, true).av_offset_frames == 2

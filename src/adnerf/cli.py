@@ -162,7 +162,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "mouth_open_corr", "av_offset_frames", "lpips", "lse_d", "lse_c", "lse_d_true", "lse_c_true", "train_seconds")
+    keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "lmd_mouth_shape_px", "lmd_mouth_still_px", "mouth_open_corr", "av_offset_frames", "lpips", "lse_d", "lse_c", "lse_d_true", "lse_c_true", "train_seconds")
     table = "\n".join(f"{k:>18}: {row.get(k, row['syncnet'] if k.startswith('lse') else None)}" for k in keys) + f"\n{'contact sheet':>18}: {row['sheet']}"
     for d in row["driven"]:
         table += f"\n{'driven':>18}: {d['audio']} ({d['lips']}): lips vs speech activity corr {d['corr']}, best shift {d['offset']} frames ({d['corr_at_offset']})"

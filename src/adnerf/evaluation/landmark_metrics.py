@@ -7,6 +7,13 @@ Both need no downloaded weights: the landmarks come from the same dlib detector 
   between corresponding landmarks of the render and of the true frame, over the mouth landmarks
   (48-67) and over all 68; in pixels and as a fraction of the true face's width (landmarks 0 to
   16), so clips of other sizes compare.
+- **Mouth shape and the still mouth**: the mouth LMD mixes where the mouth is (the head's pose)
+  with what shape it has (the speech). ``lmd_mouth_shape_px`` is the mouth LMD with each frame's
+  rendered mouth moved onto the true mouth's centre; ``lmd_mouth_still_px`` is the same figure for
+  the best mouth that never moves: the mean true mouth shape of the evaluated frames, held in
+  every frame. A render whose shape LMD is below it moves its mouth with the speech better than
+  any still mouth could. One above it may still follow the speech, since this reference knows
+  the evaluated frames' mean shape, which a render has to find from their audio.
 - **Mouth opening**: the mean distance between the inner lips (61-67, 62-66, 63-65). Its
   correlation between render and truth over the held-out frames measures whether the mouth
   follows the audio; the **audio-visual offset** is the shift of the render (in frames) that
@@ -20,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LandmarkMetrics", "av_offset", "landmark_metrics", "lmd", "mouth_opening", "pearson"]
+__all__ = ["LandmarkMetrics", "av_offset", "landmark_metrics", "lmd", "lmd_shape", "mouth_opening", "pearson", "still_lmd"]
 
 MOUTH = slice(48, 68)
 INNER_PAIRS = ((61, 67), (62, 66), (63, 65))  # upper and lower inner lip, left to right
@@ -36,6 +43,20 @@ def mouth_opening(landmarks: np.ndarray) -> np.ndarray:
 def lmd(pred: np.ndarray, true: np.ndarray, points: slice = slice(None)) -> float:
     """Mean distance in pixels between landmarks ``(N, 68, 2)`` of two clips over ``points``."""
     return float(np.linalg.norm(pred[:, points] - true[:, points], axis=-1).mean())
+
+
+def lmd_shape(pred: np.ndarray, true: np.ndarray, points: slice = MOUTH) -> float:
+    """:func:`lmd` over ``points`` with each frame's predicted points moved onto the centroid of
+    the true ones: the error of the shape alone, in pixels."""
+    p, t = pred[:, points], true[:, points]
+    return float(np.linalg.norm((p - p.mean(axis=1, keepdims=True)) - (t - t.mean(axis=1, keepdims=True)), axis=-1).mean())
+
+
+def still_lmd(true: np.ndarray, points: slice = MOUTH) -> float:
+    """:func:`lmd_shape` of a shape that never moves: the mean centred shape of ``true`` over its
+    frames, against every frame (the best a still mouth could score on these frames)."""
+    t = true[:, points] - true[:, points].mean(axis=1, keepdims=True)
+    return float(np.linalg.norm(t - t.mean(axis=0), axis=-1).mean())
 
 
 def pearson(a: np.ndarray, b: np.ndarray) -> float:
@@ -73,6 +94,10 @@ class LandmarkMetrics:
         lmd_all_px: LMD over all 68 landmarks, pixels.
         lmd_mouth: ``lmd_mouth_px`` over the true face width.
         lmd_all: ``lmd_all_px`` over the true face width.
+        lmd_mouth_shape_px: LMD over the mouth landmarks with each rendered mouth moved onto the
+            true mouth's centre (the shape's error alone), pixels.
+        lmd_mouth_still_px: The same for the mean true mouth shape of the frames held still in
+            every frame: the best a mouth that never moves could score.
         mouth_open_corr: Correlation of the rendered and true mouth openings.
         av_offset_frames: Shift of the render that maximises that correlation (0: in sync).
         av_offset_corr: The correlation at that shift.
@@ -83,6 +108,8 @@ class LandmarkMetrics:
     lmd_all_px: float
     lmd_mouth: float
     lmd_all: float
+    lmd_mouth_shape_px: float
+    lmd_mouth_still_px: float
     mouth_open_corr: float
     av_offset_frames: int
     av_offset_corr: float
@@ -100,4 +127,4 @@ def landmark_metrics(pred: np.ndarray, true: np.ndarray, max_shift: int = 5) -> 
     mouth_px, all_px = lmd(pred, true, MOUTH), lmd(pred, true)
     opening_pred, opening_true = mouth_opening(pred), mouth_opening(true)
     shift, corr = av_offset(opening_pred, opening_true, max_shift)
-    return LandmarkMetrics(mouth_px, all_px, mouth_px / width, all_px / width, pearson(opening_pred, opening_true), shift, corr, width)
+    return LandmarkMetrics(mouth_px, all_px, mouth_px / width, all_px / width, lmd_shape(pred, true), still_lmd(true), pearson(opening_pred, opening_true), shift, corr, width)
