@@ -351,16 +351,20 @@ class Trainer:
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
             self.model.set_audio_smoothing(step >= tcfg.att_start * tcfg.head_iters)
-            frame = self.pick_frame()
-            pose = self.ds.head_pose(frame, device=self.device)
-            near, far = self.model.layers["head"].crossing(self.rays, pose)
-            candidates = torch.nonzero(far > near)[:, 0]
-            mouth = self.mouth_pixels(pose)
-            n_mouth = int(round(tcfg.mouth_rays * tcfg.rays)) if mouth.numel() else 0
-            pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_mouth), self.pick_rays(mouth, n_mouth)])
-            cond = self.condition(frame, self.code(frame), pose)
-            self.maybe_update_occupancy("head", step, tcfg.head_iters, cond)
-            parts = [self.head_part(frame, pix, cond)]
+            frames = [self.pick_frame() for _ in range(tcfg.frames)]
+            parts = []
+            for k, frame in enumerate(frames):
+                pose = self.ds.head_pose(frame, device=self.device)
+                near, far = self.model.layers["head"].crossing(self.rays, pose)
+                candidates = torch.nonzero(far > near)[:, 0]
+                mouth = self.mouth_pixels(pose)
+                n = tcfg.rays // tcfg.frames
+                n_mouth = int(round(tcfg.mouth_rays * n)) if mouth.numel() else 0
+                pix = torch.cat([self.pick_rays(candidates, n - n_mouth), self.pick_rays(mouth, n_mouth)])
+                cond = self.condition(frame, self.code(frame), pose)
+                if k == 0:
+                    self.maybe_update_occupancy("head", step, tcfg.head_iters, cond)
+                parts.append(self.head_part(frame, pix, cond))
             eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
                 parts.append(self.head_part(*eye_batch))
@@ -486,8 +490,8 @@ def train(
     head_done = ckpt["head_step"] if ckpt else 0
     if stage == "torso" and head_done < tcfg.head_iters:
         raise RunError(f"stage 2 needs a finished stage 1 ({head_done}/{tcfg.head_iters} head iterations); run --stage head (with --resume) first")
-    if tcfg.rays % ranks.world:
-        raise RunError(f"{ranks.world} processes must split the {tcfg.rays} rays of a batch evenly; choose rays divisible by {ranks.world}")
+    if (tcfg.rays // tcfg.frames) % ranks.world:
+        raise RunError(f"{ranks.world} processes must split each frame's {tcfg.rays // tcfg.frames} rays of a batch evenly; choose rays divisible by {ranks.world * tcfg.frames}")
     ensure_writable(root)
     devices = ranks.gather(str(device))
     ranks.barrier()  # every process has checked the folder before process 0 writes into it

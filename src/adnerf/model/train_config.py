@@ -28,7 +28,9 @@ class TrainConfig:
             the default schedule gives it many. On the 30 s demo scene, 4000 -> 3000 iterations
             cost 0.9 dB of full-frame held-out PSNR (31.4 -> 30.5) and nothing in the mouth crop
             (26.5 dB both), and saved the 2 minutes that keep the demo within 15 minutes.
-        rays: Rays per iteration (all from one frame; an eye batch adds ``eye_rays * rays``).
+        rays: Rays per iteration (an eye batch adds ``eye_rays * rays``).
+        frames: Training frames each stage-1 iteration draws its rays from, ``rays // frames``
+            each, every frame under its own audio code and pose (1: the paper's one frame a step).
         lr: Initial learning rate of the fields (Adam).
         lr_audio: Initial learning rate of the audio encoders.
         lr_final: Final learning rate as a fraction of the initial one (exponential decay).
@@ -66,6 +68,7 @@ class TrainConfig:
     head_iters: int = 3600
     torso_iters: int = 3000
     rays: int = 1024
+    frames: int = 1
     lr: float = 1e-2
     lr_audio: float = 2e-3
     lr_final: float = 0.1
@@ -135,6 +138,8 @@ class TrainConfig:
             raise ValueError("learning rates must be positive and lr_final in (0, 1]")
         if not (0 <= self.att_start <= 1 and 0 <= self.occupancy_start <= 1):
             raise ValueError("att_start and occupancy_start must lie in [0, 1]")
+        if self.frames < 1 or self.rays % self.frames:
+            raise ValueError(f"frames must be >= 1 and divide rays ({self.rays}); got {self.frames}")
         if self.amp not in AMP_MODES:
             raise ValueError(f"amp must be one of {AMP_MODES}; got {self.amp!r}")
         if self.mask_weight < 0:
