@@ -491,7 +491,7 @@ def train(
     if stage == "torso" and head_done < tcfg.head_iters:
         raise RunError(f"stage 2 needs a finished stage 1 ({head_done}/{tcfg.head_iters} head iterations); run --stage head (with --resume) first")
     if (tcfg.rays // tcfg.frames) % ranks.world:
-        raise RunError(f"{ranks.world} processes must split each frame's {tcfg.rays // tcfg.frames} rays of a batch evenly; choose rays divisible by {ranks.world * tcfg.frames}")
+        raise RunError(f"{ranks.world} processes must split the {tcfg.rays // tcfg.frames} rays of each frame in a batch evenly; choose rays divisible by {ranks.world * tcfg.frames}")
     ensure_writable(root)
     devices = ranks.gather(str(device))
     ranks.barrier()  # every process has checked the folder before process 0 writes into it
