@@ -352,13 +352,13 @@ class Trainer:
             sched.set(step)
             self.model.set_audio_smoothing(step >= tcfg.att_start * tcfg.head_iters)
             frames = [self.pick_frame() for _ in range(tcfg.frames)]
+            n = tcfg.rays // tcfg.frames  # rays per frame
             parts = []
             for k, frame in enumerate(frames):
                 pose = self.ds.head_pose(frame, device=self.device)
                 near, far = self.model.layers["head"].crossing(self.rays, pose)
                 candidates = torch.nonzero(far > near)[:, 0]
                 mouth = self.mouth_pixels(pose)
-                n = tcfg.rays // tcfg.frames
                 n_mouth = int(round(tcfg.mouth_rays * n)) if mouth.numel() else 0
                 pix = torch.cat([self.pick_rays(candidates, n - n_mouth), self.pick_rays(mouth, n_mouth)])
                 cond = self.condition(frame, self.code(frame), pose)
