@@ -4,6 +4,7 @@ answers from constant fields, and a new layer plugs into a model without editing
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -15,9 +16,11 @@ from adnerf.model.conditions import FrameCondition
 from adnerf.model.data import SceneMeta
 from adnerf.model.layers import RadianceLayer
 from adnerf.model.talking_head import (
+    ModelConfig,
     TalkingHead,
     model_config,
     render_frame,
+    render_layers,
     render_on_plate,
 )
 from adnerf.pose import HeadPose, euler_rotation
@@ -40,13 +43,13 @@ class Constant(nn.Module):
         return FieldOutput(self.rgb.to(positions).expand(*shape, 3), torch.full(shape, self.density, dtype=positions.dtype, device=positions.device))
 
 
-def _scene() -> tuple[TalkingHead, Camera, HeadPose, Tensor]:
+def _scene(head_in_front: bool = True) -> tuple[TalkingHead, Camera, HeadPose, Tensor]:
     meta = SceneMeta(
         width=SIZE, height=SIZE, intrinsics=(30.0, 30.0, SIZE / 2, SIZE / 2), fps=25.0, near=4.0, far=8.0, head_aabb=((-0.6, -0.7, -0.6), (0.6, 0.7, 0.6)),
         torso_aabb=((-1.2, 0.3, 4.5), (1.2, 2.0, 6.5)), mouth=(0.0, 0.3, -0.5), feature_kind="logmel", feature_dim=8, n_frames=1, train=[0], test=[],
     )  # fmt: skip
     torch.manual_seed(0)
-    model = TalkingHead(model_config(meta)).eval()
+    model = TalkingHead(replace(model_config(meta), head_in_front=head_in_front)).eval()
     pose = HeadPose(euler_rotation(0.2, -0.1, 0.05, like=torch.zeros((), dtype=torch.float64)), torch.tensor([0.0, 0.2, 6.0], dtype=torch.float64))
     plate = torch.rand(SIZE, SIZE, 3, generator=torch.Generator().manual_seed(1))
     return model, meta.camera(), pose, plate
@@ -58,8 +61,9 @@ def _opacity(layer: RadianceLayer, rays, pose: HeadPose, density: float) -> Tens
     return -torch.expm1(-density * (far - near).clamp(min=0)).float()
 
 
-def test_a_frame_is_the_torso_over_the_head_over_the_plate() -> None:
-    model, cam, pose, plate = _scene()
+@pytest.mark.parametrize("head_in_front", [True, False])
+def test_a_frame_is_its_layers_in_order_over_the_plate(head_in_front: bool) -> None:
+    model, cam, pose, plate = _scene(head_in_front)
     head, torso = model.layers["head"], model.layers["torso"]
     head.coarse = head.fine = Constant((1.0, 0.0, 0.0), 3.0)
     torso.coarse = torso.fine = Constant((0.0, 0.0, 1.0), 2.0)
@@ -71,8 +75,13 @@ def test_a_frame_is_the_torso_over_the_head_over_the_plate() -> None:
     assert both.any() and ((a_h > 0.3) & (a_t == 0)).any()  # the boxes overlap on screen, and not everywhere
     red, blue = torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, 1.0])
     head_on_plate = red * a_h[:, None] + (1 - a_h[:, None]) * plate.reshape(-1, 3)
-    want = blue * a_t[:, None] + (1 - a_t[:, None]) * head_on_plate
+    torso_on_plate = blue * a_t[:, None] + (1 - a_t[:, None]) * plate.reshape(-1, 3)
+    if head_in_front:  # RAD-NeRF's order
+        want = red * a_h[:, None] + (1 - a_h[:, None]) * torso_on_plate
+    else:  # AD-NeRF's
+        want = blue * a_t[:, None] + (1 - a_t[:, None]) * head_on_plate
     torch.testing.assert_close(out.rgb.reshape(-1, 3), want, rtol=0, atol=2e-5)
+    assert list(model.layers) == (["torso", "head"] if head_in_front else ["head", "torso"])
     torch.testing.assert_close(out.head_opacity.reshape(-1), a_h, rtol=0, atol=2e-5)
     torch.testing.assert_close(out.torso_opacity.reshape(-1), a_t, rtol=0, atol=2e-5)
     # The head alone (the stage-1 picture), and the same along a subset of rays.
@@ -81,6 +90,11 @@ def test_a_frame_is_the_torso_over_the_head_over_the_plate() -> None:
     some = torch.arange(0, SIZE * SIZE, 7)
     part = render_on_plate(model, rays[some], FrameCondition(code, pose), plate.reshape(-1, 3)[some], layers=("head",))
     torch.testing.assert_close(part, alone.rgb.reshape(-1, 3)[some], rtol=0, atol=1e-6)
+    # Each layer alone, premultiplied: the head's colour is red times its opacity.
+    each = render_layers(model, rays[some], FrameCondition(code, pose))
+    assert list(each) == list(model.layers)
+    torch.testing.assert_close(each["head"].rgb, red * a_h[some, None], rtol=0, atol=2e-5)
+    torch.testing.assert_close(each["torso"].opacity, a_t[some], rtol=0, atol=2e-5)
     with pytest.raises(ValueError, match="no layer 'hat'"):
         render_frame(model, cam, pose, code, plate, layers=("hat",))
 
@@ -140,3 +154,13 @@ def test_layers_refuse_what_they_cannot_render() -> None:
         TalkingHead(type(cfg)(**{**cfg.__dict__, "audio_dim": cfg.audio_dim + 1}))
     with pytest.raises(KeyError, match="no 'eye' signal"):
         FrameCondition(torch.zeros(3), pose).signal("eye")
+
+
+def test_runs_stored_before_the_layer_order_keep_the_torso_in_front() -> None:
+    model, cam, pose, plate = _scene()
+    stored = model.config.to_dict()
+    assert stored["head_in_front"] is True  # new models: the head over the torso
+    assert ModelConfig.from_dict(stored) == model.config
+    del stored["head_in_front"]  # run.json of a run trained before the option
+    old = ModelConfig.from_dict(stored)
+    assert old.head_in_front is False and list(TalkingHead(old).layers) == ["head", "torso"]

@@ -205,13 +205,17 @@ def test_render_takes_precomputed_feature_windows(tiny: Path, tiny_run: Path, tm
     assert not (tmp_path / "g.mp4").exists() and not (tmp_path / "h.mp4").exists()
 
 
-def test_stage_two_backgrounds_are_the_head_render_where_torso_rays_are_drawn(tiny: Path, tiny_run: Path, tmp_path: Path) -> None:
-    from adnerf.model.talking_head import render_frame
+@pytest.mark.parametrize("head_in_front", [True, False])
+def test_stage_two_trains_the_frame_the_renderer_draws(tiny: Path, tiny_run: Path, tmp_path: Path, head_in_front: bool) -> None:
+    # Stage 2 composites the torso it trains with the frozen head's cached renders; in either
+    # order of the layers that is the frame render_frame draws at the drawn pixels.
+    from adnerf.compositor import Layer, over
+    from adnerf.model.talking_head import render_frame, render_layers, render_on_plate
     from adnerf.model.train import Trainer
 
     run = load_run(tiny_run)
     ds = load_dataset(tiny)
-    tr = Trainer(tmp_path, ds, run.model.config, run.train_config, "cpu", progress=False)
+    tr = Trainer(tmp_path, ds, replace(run.model.config, head_in_front=head_in_front), run.train_config, "cpu", progress=False)
     tr.model.load_state_dict(run.model.state_dict())
     tr.head_step = run.train_config.head_iters
     near, far = tr.model.layers["torso"].crossing(tr.rays)
@@ -219,14 +223,57 @@ def test_stage_two_backgrounds_are_the_head_render_where_torso_rays_are_drawn(ti
     assert 0 < in_box.float().mean() < 1
     with torch.no_grad():
         codes = tr.model.frame_codes(tr.windows)
-    out = tr.head_renders(in_box, codes)
-    plate = tr.plate.reshape(ds.meta.height, ds.meta.width, 3)
-    for f in ds.meta.train[:: max(1, len(ds.meta.train) // 4)]:
-        ref = render_frame(tr.model, tr.camera, ds.head_pose(f), codes[f], plate, layers=("head",)).rgb.reshape(-1, 3)
-        need = in_box | tr.is_torso[f]
-        torch.testing.assert_close(out[f, need], ref[need], rtol=0, atol=0)
-        torch.testing.assert_close(out[f, ~need], tr.plate[~need], rtol=0, atol=0)
+    heads = tr.head_renders(in_box, codes)
     assert (tmp_path / "head_renders.pt").exists()
+    black = torch.zeros(ds.meta.height, ds.meta.width, 3)
+    for f in ds.meta.train[:: max(1, len(ds.meta.train) // 4)]:
+        # The cache: the head alone, premultiplied, where stage 2 draws rays; nothing elsewhere.
+        alone = render_frame(tr.model, tr.camera, ds.head_pose(f), codes[f], black, layers=("head",))
+        need = in_box | tr.is_torso[f]
+        torch.testing.assert_close(heads.rgb[f, need], alone.rgb.reshape(-1, 3)[need], rtol=0, atol=1e-6)
+        torch.testing.assert_close(heads.opacity[f, need], alone.head_opacity.reshape(-1)[need], rtol=0, atol=1e-6)
+        assert not heads.opacity[f, ~need].any()
+
+        pix = torch.nonzero(in_box)[:, 0]
+        cond = tr.condition(f, codes[f], ds.head_pose(f))
+        tr.model.eval()
+        out, target, mask, held = tr.torso_part(f, pix, cond, Layer(heads.rgb[f, pix], heads.opacity[f, pix]), jitter=False)
+        want = render_on_plate(tr.model, tr.rays[pix], cond, tr.plate[pix])
+        torch.testing.assert_close(out.final.rgb.detach().float(), want, rtol=0, atol=1e-5)
+        each = render_layers(tr.model, tr.rays[pix], cond)
+        torch.testing.assert_close(out.final.opacity.detach().float(), each["torso"].opacity, rtol=0, atol=1e-5)  # the torso's own
+        flipped = over(each["torso"], over(each["head"], Layer.opaque(tr.plate[pix]))) if head_in_front else over(each["head"], over(each["torso"], Layer.opaque(tr.plate[pix])))
+        assert (flipped.rgb - want).abs().max() > 0.02  # the two orders differ on these pixels
+        assert torch.equal(target, tr.frames[f, pix]) and torch.equal(mask, tr.is_torso[f, pix])
+        # Behind the head, the torso's opacity is left free; in front of it, held to the parsing.
+        assert torch.equal(held, ~tr.is_head[f, pix]) if head_in_front else held is None
+
+
+def test_the_mask_term_counts_only_the_rays_it_holds() -> None:
+    from adnerf.compositor import composite
+    from adnerf.model.train import _optimise
+    from adnerf.renderer import RenderOutput
+
+    # One sample per ray: opacity a = 1 - exp(-density * 1); the target colour is met exactly.
+    density = torch.nn.Parameter(torch.tensor([[1.0], [2.0], [0.5], [3.0]]))
+    opt = torch.optim.SGD([density], lr=0.0)
+    rgb = torch.full((4, 1, 3), 0.5)
+
+    def render() -> RenderOutput:
+        return RenderOutput(composite(rgb, density, torch.zeros(4, 1), torch.ones(4, 1)), None)
+
+    comp = render().coarse
+    target = comp.rgb.detach()
+    mask = torch.tensor([True, False, True, False])
+    a = comp.opacity.detach()
+    held = torch.tensor([True, True, False, False])
+    loss, _ = _optimise([(render(), target, mask, held)], 0.5, opt)
+    # Coarse and final are the same pass: the mask term twice, over the held rays, divided by all 4.
+    want = 2 * 0.5 * float(((a - mask.float()).square() * held).sum()) / 4
+    assert loss == pytest.approx(want, rel=1e-6)
+    loss_all, _ = _optimise([(render(), target, mask, None)], 0.5, opt)
+    assert loss_all == pytest.approx(2 * 0.5 * float((a - mask.float()).square().mean()), rel=1e-6)
+    assert loss_all > loss * 1.5
 
 
 def test_demo_refuses_a_folder_with_another_scene(tiny: Path, tmp_path: Path) -> None:

@@ -1,15 +1,24 @@
 """The talking-head model: audio encoders and a stack of radiance layers over a plate.
 
-AD-NeRF's model is two :class:`~adnerf.model.layers.RadianceLayer` s, back to front:
+AD-NeRF's model is two :class:`~adnerf.model.layers.RadianceLayer` s:
 
 - ``head``: canonical space (camera rays are moved into the head's frame by the frame's pose),
   conditioned on the audio code;
 - ``torso``: camera space, conditioned on the audio code and the head pose.
 
 A frame is the layers composited front to back over the background plate
-(:func:`~adnerf.compositor.composite_layers`), which for these two is AD-NeRF's::
+(:func:`~adnerf.compositor.composite_layers`). New models draw the head in front, as RAD-NeRF
+and ER-NeRF do (:attr:`ModelConfig.head_in_front`)::
+
+    frame = head.rgb + (1 - head.opacity) * (torso.rgb + (1 - torso.opacity) * plate)
+
+AD-NeRF, and runs made before the option, draw the torso in front::
 
     frame = torso.rgb + (1 - torso.opacity) * (head.rgb + (1 - head.opacity) * plate)
+
+With the torso in front, the torso must be transparent over the head, including the chin, which
+moves with the speech: on a real clip the torso learnt a half-opaque dark band along the jaw (the
+average of the chin's moving edge and the shadow under it), drawn over the chin as a seam.
 
 Each layer samples only inside its box; rays that miss it get its opacity 0 without evaluating
 anything. Adding a layer is adding it to :attr:`TalkingHead.layers` (in its place in the stack);
@@ -51,6 +60,7 @@ __all__ = [
     "model_config",
     "render_frame",
     "render_chunk",
+    "render_layers",
     "render_on_plate",
 ]
 
@@ -101,6 +111,9 @@ class ModelConfig:
         eye_dim: The width of the eye openness's code (:func:`~adnerf.model.conditions.eye_code`) when
             the head reads it (datasets with ``eye.npy``; blinks on command); 0: it does not
             (AD-NeRF, and runs made before blinks).
+        head_in_front: Draw the head over the torso (RAD-NeRF's and ER-NeRF's order); ``False``:
+            the torso over the head (AD-NeRF's order, and that of runs whose stored configuration
+            predates the option, which :meth:`from_dict` reads as ``False``).
     """
 
     feature_dim: int
@@ -118,6 +131,7 @@ class ModelConfig:
     occupancy_resolution: int = 32
     occupancy_threshold: float = 0.01
     eye_dim: int = 0
+    head_in_front: bool = True
 
     @property
     def head_conditions(self) -> tuple[str, ...]:
@@ -136,6 +150,7 @@ class ModelConfig:
         """Inverse of :meth:`to_dict` (unknown keys are an error)."""
         check_config_keys(d, ModelConfig, "model config")
         d = dict(d)
+        d.setdefault("head_in_front", False)  # stored before the option: trained with the torso in front
         for key in ("head", "head_fine", "torso", "torso_fine"):
             d[key] = FieldConfig.from_dict(d[key])
         for key in ("head_aabb", "torso_aabb"):
@@ -209,9 +224,10 @@ class TalkingHead(nn.Module):
     """Audio encoders plus a stack of radiance layers (AD-NeRF's head and torso).
 
     Attributes:
-        layers: The layers back to front (drawn in this order over the plate): ``"head"``
-            (canonical space; audio, and eye openness with ``eye_dim``) then ``"torso"`` (camera
-            space; audio and head pose). Another layer is one more entry, in its place in the stack.
+        layers: The layers back to front (drawn in this order over the plate): ``"torso"``
+            (camera space; audio and head pose) then ``"head"`` (canonical space; audio, and eye
+            openness with ``eye_dim``), or the other way round without ``head_in_front``. Another
+            layer is one more entry, in its place in the stack.
 
     Args:
         config: The architecture.
@@ -222,12 +238,10 @@ class TalkingHead(nn.Module):
         self.config = config
         self.audio_net = AudioNet(config.feature_dim, config.audio_dim)
         self.att_net = AudioAttNet(config.audio_dim, config.att_len, config.att_centre_logit)
-        self.layers = nn.ModuleDict(
-            {
-                "head": _layer(config, "head", config.head, config.head_fine, config.head_aabb, config.head_samples, "canonical", config.head_conditions),
-                "torso": _layer(config, "torso", config.torso, config.torso_fine, config.torso_aabb, config.torso_samples, "camera", ("audio", "pose")),
-            }
-        )
+        head = _layer(config, "head", config.head, config.head_fine, config.head_aabb, config.head_samples, "canonical", config.head_conditions)
+        torso = _layer(config, "torso", config.torso, config.torso_fine, config.torso_aabb, config.torso_samples, "camera", ("audio", "pose"))
+        stack = [torso, head] if config.head_in_front else [head, torso]
+        self.layers = nn.ModuleDict({layer.name: layer for layer in stack})
         # Per-feature standardisation of the audio windows, fitted on the training frames.
         self.register_buffer("feature_mean", torch.zeros(config.feature_dim))
         self.register_buffer("feature_std", torch.ones(config.feature_dim))
@@ -380,6 +394,34 @@ def _render_layers(model: TalkingHead, rays: RayBundle, cond: FrameCondition, na
 
 
 @torch.no_grad()
+def render_layers(
+    model: TalkingHead,
+    rays: RayBundle,
+    cond: FrameCondition,
+    *,
+    layers: Sequence[str] | None = None,
+    chunk: int | None = None,
+    amp: str = "auto",
+) -> dict[str, Layer]:
+    """Some of the model's layers, each alone, along some rays (no gradients).
+
+    Args:
+        rays: Camera rays ``(R,)``.
+        cond: The frame's condition.
+        layers: Names of the layers to draw (all when ``None``).
+        chunk: Rays per batch (default :func:`render_chunk` of the device).
+        amp: Mixed precision of the fields (see :func:`mixed_precision`).
+
+    Returns:
+        Each layer's premultiplied colour ``(R, 3)`` and opacity ``(R,)`` (float32) by name, in
+        the model's order (back to front); stage 2 composites the frozen head with the torso
+        it trains.
+    """
+    drawn = _render_layers(model, rays, cond, layers, chunk, amp, len(rays), rays.origins.device)
+    return {name: layer for name, (layer, _) in drawn.items()}
+
+
+@torch.no_grad()
 def render_on_plate(
     model: TalkingHead,
     rays: RayBundle,
@@ -393,7 +435,7 @@ def render_on_plate(
     """Some of the model's layers over the plate along some rays (no gradients).
 
     The same values as :func:`render_frame` at those pixels, for callers that need only part of a
-    frame (stage 2 trains the torso against the head over the plate where its rays are drawn).
+    frame.
 
     Args:
         model: The trained model.
@@ -408,8 +450,8 @@ def render_on_plate(
         ``(R, 3)`` float32 colours.
     """
     plate = plate.to(torch.float32)
-    drawn = _render_layers(model, rays, cond, layers, chunk, amp, plate.shape[0], plate.device)
-    return composite_layers([layer for layer, _ in reversed(drawn.values())], plate).rgb
+    drawn = render_layers(model, rays, cond, layers=layers, chunk=chunk, amp=amp)
+    return composite_layers(list(reversed(drawn.values())), plate).rgb
 
 
 @torch.no_grad()

@@ -11,7 +11,9 @@ Losses: the MSE of the coarse and fine colours, plus ``mask_weight`` times the M
 opacities against the parsing mask of the layer being trained.
 
 Stage 2 (``torso``) freezes the head and the audio encoders and trains the torso fields on the full
-frames, with the stage-1 head rendered over the plate as the torso's background.
+frames, composited with the stage-1 head in the model's order: the head in front (the default,
+:attr:`~adnerf.model.talking_head.ModelConfig.head_in_front`), or, in AD-NeRF's order, the head
+over the plate as the torso's background.
 
 Training writes a run folder (:mod:`adnerf.model.run_folder` describes it and reads it back), with a
 checkpoint every ``checkpoint_every`` iterations and at the end of each stage. The schedule is
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -30,6 +33,7 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from ..atomic import atomic_path
+from ..compositor import Composite, Layer, over
 from ..metrics import psnr_from_mse
 from ..outputs import check_folder_output, ensure_writable
 from ..renderer import RenderOutput
@@ -64,7 +68,7 @@ from .talking_head import (
     TalkingHead,
     mixed_precision,
     model_config,
-    render_on_plate,
+    render_layers,
 )
 from .train_config import TrainConfig
 
@@ -90,20 +94,28 @@ class _Schedule:
         return self.base[0] * factor
 
 
-def _optimise(parts: list[tuple[RenderOutput, torch.Tensor, torch.Tensor]], mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks()) -> tuple[float, float]:
+Part = tuple[RenderOutput, torch.Tensor, torch.Tensor, "torch.Tensor | None"]
+"""A batch of rays to learn from: ``(render, target (R, 3), mask (R,) bool, held (R,) bool or
+None)``; the mask is the opacity's target on the ``held`` rays (``None``: all of them)."""
+
+
+def _optimise(parts: list[Part], mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks()) -> tuple[float, float]:
     """One step on the MSE of the coarse and fine colours plus ``mask_weight`` times the MSE of
-    their opacities against the parsing mask, over the rays of every ``(render, target, mask)``
-    part together (each part's mean weighted by its share of the rays); returns ``(loss, fine
-    colour MSE)``, averaged over the processes (whose gradients are averaged before the step)."""
-    total = sum(len(target) for _, target, _ in parts)
+    their opacities against the parsing mask (on the rays it holds; the others count 0), over the
+    rays of every part together (each part's mean weighted by its share of the rays); returns
+    ``(loss, fine colour MSE)``, averaged over the processes (whose gradients are averaged before
+    the step)."""
+    total = sum(len(target) for _, target, _, _ in parts)
     loss = fine_mse = 0.0
-    for out, target, mask in parts:
+    for out, target, mask, held in parts:
         share = len(target) / total  # 1.0 for one part: the products and sums below are then exact
         part_fine = F.mse_loss(out.final.rgb.float(), target)
         part = F.mse_loss(out.coarse.rgb.float(), target) + part_fine
         if mask_weight > 0:
             m = mask.float()
-            part = part + mask_weight * (F.mse_loss(out.coarse.opacity.float(), m) + F.mse_loss(out.final.opacity.float(), m))
+            for composite in (out.coarse, out.final):
+                error = (composite.opacity.float() - m).square()
+                part = part + mask_weight * (error.mean() if held is None else (error * held).mean())
         loss, fine_mse = loss + share * part, fine_mse + share * part_fine
     optimizer.zero_grad(set_to_none=True)
     if loss.requires_grad:  # False when empty-space skipping left no sample on any ray
@@ -315,13 +327,14 @@ class Trainer:
                 self.save()
         bar.close()
 
-    def head_part(self, frame: int, pix: torch.Tensor, cond: FrameCondition) -> tuple[RenderOutput, torch.Tensor, torch.Tensor]:
-        """Render this process's part of stage-1 rays ``pix`` of ``frame``: ``(render, target, head mask)``."""
+    def head_part(self, frame: int, pix: torch.Tensor, cond: FrameCondition) -> Part:
+        """Render this process's part of stage-1 rays ``pix`` of ``frame``: ``(render, target, head
+        mask, None)`` (the mask holds on every ray)."""
         pix = self.ranks.part(pix)  # every process drew the same batch; it renders its part
         with mixed_precision(self.device, self.tcfg.amp):
             out = self.model.layers["head"].render(self.rays[pix], cond, background=self.plate[pix], jitter=True, generator=self.ranks.shard(self.generator))
         self.samples += out.samples_evaluated
-        return out, self.head_target(frame, pix), self.is_head[frame, pix]
+        return out, self.head_target(frame, pix), self.is_head[frame, pix], None
 
     def eye_batch(self) -> tuple[int, torch.Tensor, FrameCondition] | None:
         """For heads that blink: ``eye_rays * rays`` more rays around the eyes of a frame drawn
@@ -373,27 +386,56 @@ class Trainer:
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
     @torch.no_grad()
-    def head_renders(self, in_box: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
-        """Stage-1 renders over the plate of every frame ``(N, H*W, 3)``, cached in the run folder.
+    def head_renders(self, in_box: torch.Tensor, codes: torch.Tensor) -> Layer:
+        """The stage-1 head of every frame as a premultiplied layer (``rgb (N, H*W, 3)``, ``opacity
+        (N, H*W)``), cached in the run folder.
 
         Only the pixels stage 2 draws rays at (``in_box (H*W,)``: rays that cross the torso box,
         and the frame's torso pixels) are rendered, under the frames' audio codes ``codes (N,
-        audio_dim)``; the others hold the plate, which stage 2 never reads.
+        audio_dim)``; the others hold no head (opacity 0), which stage 2 never reads.
         """
         path = self.root / "head_renders.pt"
         if path.exists():
             cached = torch.load(path, map_location=self.device, weights_only=False)
-            if cached["head_step"] == self.head_step:
-                return cached["renders"].float()
+            if cached["head_step"] == self.head_step and "opacity" in cached:  # older caches held the head over the plate
+                return Layer(cached["rgb"].float(), cached["opacity"].float())
         self.model.eval()
-        out = self.plate.expand_as(self.frames).clone()
+        n, hw = self.frames.shape[:2]
+        rgb, opacity = torch.zeros(n, hw, 3, device=self.device), torch.zeros(n, hw, device=self.device)
         for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
             pix = torch.nonzero(in_box | self.is_torso[frame])[:, 0]
-            pose = self.ds.head_pose(frame, device=self.device)
-            out[frame, pix] = render_on_plate(self.model, self.rays[pix], self.condition(frame, codes[frame], pose), self.plate[pix], layers=("head",), amp=self.tcfg.amp)
+            cond = self.condition(frame, codes[frame], self.ds.head_pose(frame, device=self.device))
+            head = render_layers(self.model, self.rays[pix], cond, layers=("head",), amp=self.tcfg.amp)["head"]
+            rgb[frame, pix], opacity[frame, pix] = head.rgb, head.opacity
         if self.ranks.main:
-            save_atomic({"head_step": self.head_step, "renders": out.half()}, path)
-        return out
+            save_atomic({"head_step": self.head_step, "rgb": rgb.half(), "opacity": opacity.half()}, path)
+        return Layer(rgb, opacity)
+
+    def torso_part(self, frame: int, pix: torch.Tensor, cond: FrameCondition, head: Layer, *, jitter: bool = True) -> Part:
+        """Render stage-2 rays ``pix`` of ``frame`` through the torso with the frozen head ``head``
+        (that frame's premultiplied layer at those pixels) in the model's order.
+
+        Returns:
+            ``(render, target, torso mask, rays whose opacity the mask holds)``. The render's colours
+            are the whole stack over the plate; its opacities are the torso's. With the head in
+            front, the torso's opacity is free where the parsing says head: there it lies behind
+            the head (the neck goes on behind the chin), and holding it to 0 would average the
+            chin's moving edge into a half-transparent band under it.
+        """
+        torso = self.model.layers["torso"]
+        head_in_front = self.model.config.head_in_front
+        background = self.plate[pix] if head_in_front else over(head, Layer.opaque(self.plate[pix])).rgb
+        with mixed_precision(self.device, self.tcfg.amp):
+            out = torso.render(self.rays[pix], cond, background=background, jitter=jitter, generator=self.ranks.shard(self.generator))
+        self.samples += out.samples_evaluated
+        if not head_in_front:
+            return out, self.frames[frame, pix], self.is_torso[frame, pix], None
+
+        def under_head(c: Composite) -> Composite:
+            return replace(c, rgb=over(head, Layer.opaque(c.rgb.float())).rgb)
+
+        out = RenderOutput(under_head(out.coarse), None if out.fine is None else under_head(out.fine), out.samples_evaluated)
+        return out, self.frames[frame, pix], self.is_torso[frame, pix], ~self.is_head[frame, pix]
 
     def torso_stage(self, max_steps: int | None) -> None:
         tcfg = self.tcfg
@@ -402,7 +444,7 @@ class Trainer:
         near, far = self.model.layers["torso"].crossing(self.rays)
         with torch.no_grad():
             codes = self.model.frame_codes(self.windows)
-        backgrounds = self.head_renders(far > near, codes)
+        heads = self.head_renders(far > near, codes)
         candidates = torch.nonzero(far > near)[:, 0]
         sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
         self.model.train()
@@ -415,13 +457,10 @@ class Trainer:
             n_person = int(round(tcfg.torso_person_rays * tcfg.rays)) if person.numel() else 0
             pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
             pix = self.ranks.part(pix)
-            target = self.frames[frame, pix]
             cond = self.condition(frame, codes[frame], pose)
             self.maybe_update_occupancy("torso", step, tcfg.torso_iters, cond)
-            with mixed_precision(self.device, tcfg.amp):
-                out = self.model.layers["torso"].render(self.rays[pix], cond, background=backgrounds[frame, pix], jitter=True, generator=self.ranks.shard(self.generator))
-            self.samples += out.samples_evaluated
-            return _optimise([(out, target, self.is_torso[frame, pix])], tcfg.mask_weight, self.opt_torso, self.ranks)
+            part = self.torso_part(frame, pix, cond, Layer(heads.rgb[frame, pix], heads.opacity[frame, pix]))
+            return _optimise([part], tcfg.mask_weight, self.opt_torso, self.ranks)
 
         self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
 
