@@ -245,8 +245,33 @@ def test_stage_two_trains_the_frame_the_renderer_draws(tiny: Path, tiny_run: Pat
         flipped = over(each["torso"], over(each["head"], Layer.opaque(tr.plate[pix]))) if head_in_front else over(each["head"], over(each["torso"], Layer.opaque(tr.plate[pix])))
         assert (flipped.rgb - want).abs().max() > 0.02  # the two orders differ on these pixels
         assert torch.equal(target, tr.frames[f, pix]) and torch.equal(mask, tr.is_torso[f, pix])
-        # Behind the head, the torso's opacity is left free; in front of it, held to the parsing.
-        assert torch.equal(held, ~tr.is_head[f, pix]) if head_in_front else held is None
+        # Behind the chin, the torso's opacity is left free; in front of the head, held to the parsing.
+        assert torch.equal(held, ~tr.behind_chin[f, pix]) if head_in_front else held is None
+    if head_in_front:
+        assert tr.behind_chin.any() and not (tr.behind_chin & ~tr.is_head).any()
+
+
+def test_the_torso_may_reach_behind_the_chin_only() -> None:
+    from adnerf.model.train import behind_chin
+
+    # Two frames of 40 x 30: a head of rows 5..24 (20 rows, so the reach is 2 pixels), columns
+    # 2..27, on a torso from row 25 down, columns 10..19; in the second frame the chin is 3 rows
+    # lower (the jaw open).
+    H, W = 40, 30
+    head = torch.zeros(2, H, W, dtype=torch.bool)
+    torso = torch.zeros(2, H, W, dtype=torch.bool)
+    head[0, 5:25, 2:28] = True
+    torso[0, 25:, 10:20] = True
+    head[1, 5:28, 2:28] = True
+    torso[1, 28:, 10:20] = True
+    got = behind_chin(head.reshape(2, -1), torso.reshape(2, -1), H, W).reshape(2, H, W)
+    want = torch.zeros(2, H, W, dtype=torch.bool)
+    want[0, 23:25, 8:22] = True  # two rows above the torso, two columns either side of it
+    want[1, 26:28, 8:22] = True
+    assert torch.equal(got, want)
+    wider = behind_chin(head.reshape(2, -1), torso.reshape(2, -1), H, W, band=0.25).reshape(2, H, W)
+    assert torch.equal(wider[0].nonzero()[:, 0].unique(), torch.arange(20, 25))  # a reach of 5 rows
+    assert not behind_chin(torch.zeros(1, 4, dtype=torch.bool), torch.ones(1, 4, dtype=torch.bool), 2, 2).any()  # no head
 
 
 def test_the_mask_term_counts_only_the_rays_it_holds() -> None:

@@ -125,6 +125,44 @@ def _optimise(parts: list[Part], mask_weight: float, optimizer: torch.optim.Opti
     return tuple(ranks.mean([float(loss.detach()), float(fine_mse.detach())]))  # type: ignore[return-value]
 
 
+NECK_BAND = 0.1
+"""How far the torso may reach behind the head, as a fraction of the head label's height."""
+
+
+def behind_chin(is_head: torch.Tensor, is_torso: torch.Tensor, height: int, width: int, band: float = NECK_BAND) -> torch.Tensor:
+    """The head pixels where a torso drawn behind the head may be opaque: those within ``r``
+    pixels (a square around each) of the frame's torso pixels, ``r`` = ``band`` times the
+    median height in rows of the frames' head labels (at least 1 pixel).
+
+    That is where the chin, which moves with the speech, covers the neck in some frames and not
+    in others. Further up the torso stays transparent behind the head, so a head turned further
+    than in any training frame uncovers the plate rather than whatever the torso made up there.
+
+    Args:
+        is_head: Head labels ``(N, H*W)`` bool.
+        is_torso: Torso labels ``(N, H*W)`` bool.
+        height: ``H``.
+        width: ``W``.
+        band: The reach as a fraction of the head's height.
+
+    Returns:
+        ``(N, H*W)`` bool, a subset of ``is_head``.
+    """
+    rows = is_head.reshape(-1, height, width).any(dim=2)
+    present = rows.any(dim=1)
+    if not bool(present.any()):
+        return torch.zeros_like(is_head)
+    idx = torch.arange(height, device=is_head.device)
+    top = torch.where(rows, idx, height).amin(dim=1)
+    bottom = torch.where(rows, idx, -1).amax(dim=1)
+    reach = max(1, round(band * float((bottom - top + 1)[present].float().median())))
+    near = torch.zeros_like(is_head)
+    for start in range(0, len(is_torso), 64):  # frames at a time: a float copy of all at once is large
+        torso = is_torso[start : start + 64].reshape(-1, 1, height, width).float()
+        near[start : start + 64] = F.max_pool2d(torso, 2 * reach + 1, stride=1, padding=reach).reshape(len(torso), -1) > 0
+    return near & is_head
+
+
 class Trainer:
     """A training session of a talking head on a dataset, stepped by its stages.
 
@@ -154,6 +192,8 @@ class Trainer:
         self.plate = torch.as_tensor(ds.background, device=device).reshape(-1, 3).float() / 255.0
         labels = torch.as_tensor(ds.parsing, device=device).reshape(ds.meta.n_frames, -1)
         self.is_head, self.is_torso = labels == LABEL_HEAD, labels == LABEL_TORSO
+        # Where a torso behind the head may reach up behind the chin (stage 2, head in front).
+        self.behind_chin = behind_chin(self.is_head, self.is_torso, ds.meta.height, ds.meta.width) if self.model.config.head_in_front else None
         self.windows = torch.as_tensor(ds.features, device=device)
         # The frame pools stay on the CPU, as the generator does: reading a drawn frame back from
         # a GPU would wait for the work queued there at every draw.
@@ -418,9 +458,9 @@ class Trainer:
         Returns:
             ``(render, target, torso mask, rays whose opacity the mask holds)``. The render's colours
             are the whole stack over the plate; its opacities are the torso's. With the head in
-            front, the torso's opacity is free where the parsing says head: there it lies behind
-            the head (the neck goes on behind the chin), and holding it to 0 would average the
-            chin's moving edge into a half-transparent band under it.
+            front, the torso's opacity is free at the head pixels just above the torso
+            (:func:`behind_chin`): the neck goes on behind the chin, and holding it to 0 there
+            would average the chin's moving edge into a half-transparent band under it.
         """
         torso = self.model.layers["torso"]
         head_in_front = self.model.config.head_in_front
@@ -435,7 +475,7 @@ class Trainer:
             return replace(c, rgb=over(head, Layer.opaque(c.rgb.float())).rgb)
 
         out = RenderOutput(under_head(out.coarse), None if out.fine is None else under_head(out.fine), out.samples_evaluated)
-        return out, self.frames[frame, pix], self.is_torso[frame, pix], ~self.is_head[frame, pix]
+        return out, self.frames[frame, pix], self.is_torso[frame, pix], ~self.behind_chin[frame, pix]
 
     def torso_stage(self, max_steps: int | None) -> None:
         tcfg = self.tcfg
