@@ -123,6 +123,22 @@ def test_kill_and_resume_gives_the_same_steps(tiny: Path, tmp_path: Path) -> Non
         train(tiny, straight, config=cfg, progress=False)
 
 
+def test_kill_and_resume_in_stage_two_gives_the_same_steps(tiny: Path, tmp_path: Path) -> None:
+    # Stage 2 trains against the cached head renders; a resumed run reads them back from the file
+    # and must see the values the uninterrupted run trained on.
+    cfg = TrainConfig(head_iters=3, torso_iters=6, rays=64, log_every=1, checkpoint_every=3)
+    straight = train(tiny, tmp_path / "straight", config=cfg, progress=False)
+    killed = tmp_path / "killed"
+    train(tiny, killed, config=cfg, progress=False, max_steps=8)  # killed after torso step 5: steps 4-5 are lost
+    assert torch.load(killed / "checkpoint.pt", weights_only=False)["torso_step"] == 3
+    train(tiny, killed, progress=False, resume=True)
+    a = torch.load(straight / "checkpoint.pt", weights_only=False)
+    b = torch.load(killed / "checkpoint.pt", weights_only=False)
+    assert b["torso_step"] == 6
+    for key, value in a["model"].items():
+        assert torch.equal(value, b["model"][key]), key
+
+
 def test_background_replacement_changes_only_the_background(tiny: Path, tiny_run: Path) -> None:
     run, ds = load_run(tiny_run), load_dataset(tiny)
     idx = list(ds.meta.test)

@@ -447,9 +447,11 @@ class Trainer:
             cond = self.condition(frame, codes[frame], self.ds.head_pose(frame, device=self.device))
             head = render_layers(self.model, self.rays[pix], cond, layers=("head",), amp=self.tcfg.amp)["head"]
             rgb[frame, pix], opacity[frame, pix] = head.rgb, head.opacity
+        rgb, opacity = rgb.half(), opacity.half()
         if self.ranks.main:
-            save_atomic({"head_step": self.head_step, "rgb": rgb.half(), "opacity": opacity.half()}, path)
-        return Layer(rgb, opacity)
+            save_atomic({"head_step": self.head_step, "rgb": rgb, "opacity": opacity}, path)
+        # The cache's precision from the start, so that a run resumed in stage 2 trains on the same values.
+        return Layer(rgb.float(), opacity.float())
 
     def torso_part(self, frame: int, pix: torch.Tensor, cond: FrameCondition, head: Layer, *, jitter: bool = True) -> Part:
         """Render stage-2 rays ``pix`` of ``frame`` through the torso with the frozen head ``head``
