@@ -406,6 +406,7 @@ def render_layers(
     """Some of the model's layers, each alone, along some rays (no gradients).
 
     Args:
+        model: The model.
         rays: Camera rays ``(R,)``.
         cond: The frame's condition.
         layers: Names of the layers to draw (all when ``None``).
