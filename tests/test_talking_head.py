@@ -264,9 +264,9 @@ def test_stage_two_trains_the_frame_the_renderer_draws(tiny: Path, tiny_run: Pat
         assert (flipped.rgb - want).abs().max() > 0.02  # the two orders differ on these pixels
         assert torch.equal(target, tr.frames[f, pix]) and torch.equal(mask, tr.is_torso[f, pix])
         # Behind the chin, the torso's opacity is left free; in front of the head, held to the parsing.
-        assert torch.equal(held, ~tr.behind_chin[f, pix]) if head_in_front else held is None
+        assert torch.equal(held, ~tr.reach[f, pix]) if head_in_front else held is None
     if head_in_front:
-        assert tr.behind_chin.any() and not (tr.behind_chin & ~tr.is_head).any()
+        assert tr.reach.any() and not (tr.reach & ~tr.is_head).any()
 
 
 def test_the_torso_may_reach_behind_the_chin_only() -> None:

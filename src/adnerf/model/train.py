@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import replace
+from functools import cached_property
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -159,7 +160,9 @@ def behind_chin(is_head: torch.Tensor, is_torso: torch.Tensor, height: int, widt
     near = torch.zeros_like(is_head)
     for start in range(0, len(is_torso), 64):  # frames at a time: a float copy of all at once is large
         torso = is_torso[start : start + 64].reshape(-1, 1, height, width).float()
-        near[start : start + 64] = F.max_pool2d(torso, 2 * reach + 1, stride=1, padding=reach).reshape(len(torso), -1) > 0
+        # The square's maximum as the maximum over its rows of the maximum along each row.
+        along = F.max_pool2d(torso, (1, 2 * reach + 1), stride=1, padding=(0, reach))
+        near[start : start + 64] = F.max_pool2d(along, (2 * reach + 1, 1), stride=1, padding=(reach, 0)).reshape(len(torso), -1) > 0
     return near & is_head
 
 
@@ -192,8 +195,6 @@ class Trainer:
         self.plate = torch.as_tensor(ds.background, device=device).reshape(-1, 3).float() / 255.0
         labels = torch.as_tensor(ds.parsing, device=device).reshape(ds.meta.n_frames, -1)
         self.is_head, self.is_torso = labels == LABEL_HEAD, labels == LABEL_TORSO
-        # Where a torso behind the head may reach up behind the chin (stage 2, head in front).
-        self.behind_chin = behind_chin(self.is_head, self.is_torso, ds.meta.height, ds.meta.width) if self.model.config.head_in_front else None
         self.windows = torch.as_tensor(ds.features, device=device)
         # The frame pools stay on the CPU, as the generator does: reading a drawn frame back from
         # a GPU would wait for the work queued there at every draw.
@@ -223,6 +224,12 @@ class Trainer:
         self.head_step = self.torso_step = 0
         self.elapsed = {"head": 0.0, "torso": 0.0}
         self.samples = 0  # field evaluations (after empty-space skipping) since construction
+
+    @cached_property
+    def reach(self) -> torch.Tensor:
+        """Where the torso may be opaque behind the head (stage 2, head in front): :func:`behind_chin`
+        of every frame ``(N, H*W)``, made on first use."""
+        return behind_chin(self.is_head, self.is_torso, self.ds.meta.height, self.ds.meta.width)
 
     # ---- checkpoints
     def save(self) -> None:
@@ -477,7 +484,7 @@ class Trainer:
             return replace(c, rgb=over(head, Layer.opaque(c.rgb.float())).rgb)
 
         out = RenderOutput(under_head(out.coarse), None if out.fine is None else under_head(out.fine), out.samples_evaluated)
-        return out, self.frames[frame, pix], self.is_torso[frame, pix], ~self.behind_chin[frame, pix]
+        return out, self.frames[frame, pix], self.is_torso[frame, pix], ~self.reach[frame, pix]
 
     def torso_stage(self, max_steps: int | None) -> None:
         tcfg = self.tcfg
