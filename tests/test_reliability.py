@@ -7,6 +7,7 @@ valid data, tracebacks), through the command line (``adnerf.cli.main``) where a 
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import stat
@@ -184,6 +185,22 @@ def test_resume_continues_the_stored_config(scene: Path, tmp_path: Path, capsys:
     other.write_text(json.dumps({"rays": 1024}))
     _fails(["train", str(scene), "-o", str(out), "--resume", "--config", str(other)], "rays 64 -> 1024", capsys)
     assert _tree(out) == before
+
+
+def test_scale_trains_the_schedule_in_fewer_larger_steps_and_only_for_a_new_run(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({k: v for k, v in CFG.items() if k not in ("head_iters", "torso_iters")}))
+    out = tmp_path / "run"
+    assert main(["train", str(scene), "-o", str(out), "--iters", "6", "--config", str(cfg), "--scale", "2"]) == 0
+    stored = json.loads((out / "run.json").read_text())["train"]
+    assert (stored["rays"], stored["frames"], stored["head_iters"], stored["torso_iters"]) == (128, 2, 3, 2)  # --iters 6: 6 + 3, then halved
+    assert math.isclose(stored["lr"], 0.005 * math.sqrt(2))
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert (ckpt["head_step"], ckpt["torso_step"]) == (3, 2)
+    before = _tree(out)
+    _fails(["train", str(scene), "-o", str(out), "--resume", "--scale", "2"], "drop --scale", capsys)
+    _fails(["train", str(scene), "-o", str(tmp_path / "r0"), "--scale", "0"], "must be >= 1", capsys)
+    assert _tree(out) == before and not (tmp_path / "r0").exists()
 
 
 def test_torso_stage_alone_is_refused_before_writing(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -3,6 +3,7 @@ from several frames a step."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict
 from pathlib import Path
 
@@ -10,20 +11,28 @@ import numpy as np
 import pytest
 import torch
 
-from adnerf.model.data import load_dataset
+from adnerf.model import train as train_module
+from adnerf.model.data import LABEL_HEAD, load_dataset
 from adnerf.model.layers import RadianceLayer
-from adnerf.model.train import TrainConfig, Trainer, train
+from adnerf.model.talking_head import TalkingHead
+from adnerf.model.train import TrainConfig, train
 from adnerf.synth import SynthConfig, synthesize
 
 
 def test_scaled_schedule_draws_the_same_rays_in_fewer_steps() -> None:
     base = TrainConfig()
     s = base.scaled(4)
-    assert (s.rays, s.head_iters, s.torso_iters, s.occupancy_every) == (4096, 900, 750, 4)
+    assert (s.rays, s.frames, s.head_iters, s.torso_iters, s.occupancy_every) == (4096, 4, 900, 750, 4)
     assert (s.checkpoint_every, s.log_every) == (round(250 / 4), round(25 / 4))
-    # As many rays in all, and every fraction, rate and switch of the schedule kept.
+    # As many rays in all, as many rays per frame drawn (so every frame is drawn as often), and
+    # every fraction, rate and switch of the schedule kept.
     assert s.rays * (s.head_iters + s.torso_iters) == base.rays * (base.head_iters + base.torso_iters)
-    scaled_keys = ("rays", "head_iters", "torso_iters", "occupancy_every", "checkpoint_every", "log_every")
+    assert s.rays // s.frames == base.rays // base.frames
+    assert TrainConfig(frames=2).scaled(4).frames == 8
+    # Learning rates times sqrt(k): what recovered the real clip's held-out quality at k = 4.
+    assert (s.lr, s.lr_audio) == (2 * base.lr, 2 * base.lr_audio)
+    assert math.isclose(base.scaled(2).lr, math.sqrt(2) * base.lr)
+    scaled_keys = ("rays", "frames", "lr", "lr_audio", "head_iters", "torso_iters", "occupancy_every", "checkpoint_every", "log_every")
     kept = {k: v for k, v in asdict(base).items() if k not in scaled_keys}
     assert {k: asdict(s)[k] for k in kept} == kept
     assert base.scaled(1) == base
@@ -39,23 +48,53 @@ def test_scaled_schedule_draws_the_same_rays_in_fewer_steps() -> None:
 def test_frames_per_step_splits_the_rays_over_frames_each_under_its_own_speech(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     data = synthesize(tmp_path / "data", SynthConfig(seconds=2.0, size=48, seed=3))
     ds = load_dataset(data)
-    seen: list[tuple[int, int, int]] = []  # (speech's frame, pose's frame, rays) of each head render
+    seen: dict[str, list[tuple[list[int], list[int]]]] = {"head": [], "torso": []}  # per training render: each ray's speech's frame and pose's frame
     real = RadianceLayer.render
 
     def spy(self: RadianceLayer, rays, cond, **kw):  # noqa: ANN001, ANN003, ANN202
-        if self.name == "head":
-            frame = int(np.argmin(np.linalg.norm(ds.poses[:, :3, 3] - cond.pose.t.numpy(), axis=1)))
-            seen.append((int(cond.audio[0]), frame, rays.origins.shape[0]))
+        if self.training:  # not stage 2's renders of the frozen head
+            n = rays.origins.shape[0]
+            t = cond.pose.t.expand(n, 3).numpy()
+            poses = np.argmin(np.linalg.norm(ds.poses[None, :, :3, 3] - t[:, None], axis=2), axis=1)
+            seen[self.name].append((cond.audio.expand(n, -1)[:, 0].long().tolist(), poses.tolist()))
+            # Each ray's pixel (the camera's rays differ in direction only).
+            pixels.append(torch.cdist(rays.directions.float(), camera_dirs).argmin(dim=1))
         return real(self, rays, cond, **kw)
 
+    targets: list[torch.Tensor] = []
+    real_optimise = train_module._optimise
+
+    def optimise_spy(parts, *args, **kw):  # noqa: ANN001, ANN002, ANN003, ANN202
+        targets.extend(target for _, target, _, _ in parts)
+        return real_optimise(parts, *args, **kw)
+
+    def naming_codes(self: TalkingHead, windows: torch.Tensor, frames=None, batch: int = 512) -> torch.Tensor:  # noqa: ANN001
+        """Audio codes that name their frame, to see whose speech each ray is rendered under."""
+        index = torch.arange(windows.shape[0]) if frames is None else torch.as_tensor(frames).reshape(-1)
+        return index.float()[:, None].expand(-1, self.config.audio_dim)
+
+    camera_dirs = ds.meta.camera().rays().flatten().directions.float()
+    pixels: list[torch.Tensor] = []
     monkeypatch.setattr(RadianceLayer, "render", spy)
-    # An audio code that names its frame, to see whose speech each part is rendered under.
-    monkeypatch.setattr(Trainer, "code", lambda self, frame: torch.full((self.model.config.audio_dim,), float(frame)))
-    cfg = TrainConfig(head_iters=3, torso_iters=0, rays=64, frames=4, eye_rays=0.0, log_every=1)
+    monkeypatch.setattr(TalkingHead, "frame_codes", naming_codes)
+    monkeypatch.setattr(train_module, "_optimise", optimise_spy)
+    cfg = TrainConfig(head_iters=3, torso_iters=3, rays=64, frames=4, eye_rays=0.0, log_every=1)
     train(data, tmp_path / "run", config=cfg, progress=False)
-    assert len(seen) == 4 * cfg.head_iters and all(n == 16 for _, _, n in seen)
-    assert all(speech == frame and frame in ds.meta.train for speech, frame, _ in seen)
-    assert len({frame for _, frame, _ in seen}) > cfg.head_iters  # not one frame a step
+    for stage, iters in (("head", cfg.head_iters), ("torso", cfg.torso_iters)):
+        renders = seen[stage]
+        assert len(renders) == iters, stage  # a step's frames are rendered in one call
+        for speech, poses in renders:
+            assert speech == poses and set(poses) <= set(ds.meta.train), stage  # each ray under its own frame's speech and pose
+            assert len(poses) == 64 and all(len(set(poses[k : k + 16])) == 1 for k in range(0, 64, 16)), stage  # 16 rays a frame
+        assert len({f for _, poses in renders for f in poses}) > iters, stage  # not one frame a step
+    # Each ray's target is its own frame's pixel (stage 1: the plate off the head).
+    frames = torch.as_tensor(ds.frames).reshape(len(ds.frames), -1, 3).float() / 255
+    plate = torch.as_tensor(ds.background).reshape(-1, 3).float() / 255
+    head = torch.as_tensor(ds.parsing).reshape(len(ds.frames), -1) == LABEL_HEAD
+    for k, ((_, poses), pix, target) in enumerate(zip(seen["head"] + seen["torso"], pixels, targets)):
+        f = torch.tensor(poses)
+        want = torch.where(head[f, pix, None], frames[f, pix], plate[pix]) if k < cfg.head_iters else frames[f, pix]
+        assert torch.allclose(target, want), k
     for bad in (0, 3):  # none, or a count that does not divide the 1024 rays
         with pytest.raises(ValueError, match="frames"):
             TrainConfig(frames=bad).validate()

@@ -14,10 +14,12 @@ what it measured), each with its own time limit:
    alone), steady state, in whole-frame batches of 262144 rays (the GPU default of
    :func:`adnerf.model.talking_head.render_chunk`).
 4. ``steps``: seconds per stage-1 training iteration on the demo's data against the rays per
-   iteration (1024, the CPU's default, to 8192), timed over ``--steps-counts`` iterations
-   after a warm-up (empty-space skipping is on after a tenth of them).
+   iteration (1024, the CPU's default, to 8192), drawn from one frame and from ``rays / 1024``
+   frames (rendered in one call), timed over ``--steps-counts`` iterations after a warm-up
+   (empty-space skipping is on after a tenth of them).
 5. ``demo_scaled``: the demo's scene trained again with ``TrainConfig().scaled(k)`` for each
-   ``k`` of ``--demo-scales`` (``k`` times the rays in ``k`` times fewer steps): time and bars.
+   ``k`` of ``--demo-scales`` (``k`` times the rays, from ``k`` times the frames, in ``k`` times
+   fewer steps): time and bars.
 6. ``real``: with ``--real DATA`` (a preprocessed real clip), a run trained on the GPU with
    ``TrainConfig(HEAD, TORSO).scaled(K)`` (``--real-iters HEAD,TORSO``, ``--real-scale K``), its
    training time and its held-out metrics without the landmark ones (``adnerf evaluate
@@ -158,11 +160,17 @@ def step_steps(args: argparse.Namespace) -> dict:
     ds = load_dataset(Path(args.work) / "demo" / "data", truth=False)
     rows = []
     warm, timed = args.steps_counts
-    # Each ray count with the trainer's Adam (fused on CUDA), and the smallest also with the
-    # multi-tensor Adam PyTorch uses by default there: what fusing saves per step.
-    for rays, adam in [(r, "trainer") for r in args.steps_rays] + [(args.steps_rays[0], "foreach")]:
-        tcfg = TrainConfig(rays=rays, head_iters=warm + timed, checkpoint_every=10**9, log_every=10**9)
-        root = Path(args.work) / f"steps_{rays}_{adam}"
+    # Each ray count with the trainer's Adam (fused on CUDA) from one frame, and from as many frames
+    # as it has times the smallest count (what scaled(k) draws: as many rays a frame, one render
+    # call for all); the smallest also with the multi-tensor Adam PyTorch uses by default there:
+    # what fusing saves per step.
+    base = args.steps_rays[0]
+    runs = [(r, 1, "trainer") for r in args.steps_rays]
+    runs += [(r, r // base, "trainer") for r in args.steps_rays if r // base > 1 and r % (r // base) == 0]
+    runs += [(base, 1, "foreach")]
+    for rays, frames, adam in runs:
+        tcfg = TrainConfig(rays=rays, frames=frames, head_iters=warm + timed, checkpoint_every=10**9, log_every=10**9)
+        root = Path(args.work) / f"steps_{rays}_{frames}_{adam}"
         root.mkdir(parents=True, exist_ok=True)
         trainer = Trainer(root, ds, model_config(ds.meta, "fast", eye=blinks_in(ds.eye, ds.meta.train)), tcfg, args.device, False)
         if adam == "foreach":
@@ -172,7 +180,7 @@ def step_steps(args: argparse.Namespace) -> dict:
         t0 = time.perf_counter()
         trainer.head_stage(timed)
         _sync(args.device)
-        rows.append({"rays": rays, "adam": adam, "seconds_per_iteration": (time.perf_counter() - t0) / timed, "eye_batch": bool(trainer.blinking.numel())})
+        rows.append({"rays": rays, "frames": frames, "adam": adam, "seconds_per_iteration": (time.perf_counter() - t0) / timed, "eye_batch": bool(trainer.blinking.numel())})
     return {"stage": "head", "rows": rows}
 
 
@@ -212,7 +220,7 @@ def step_real(args: argparse.Namespace) -> dict:
     elapsed = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["elapsed"]  # seconds in each stage's loop
     metrics, _ = evaluate_run(load_run(run_dir, args.device), load_dataset(args.real), "test", landmarks=False)
     keep = ("frames", "psnr", "ssim", "psnr_mouth", "ssim_mouth", "psnr_head", "ssim_head", "render_fps")
-    return {"schedule": {"rays": tcfg.rays, "head_iters": tcfg.head_iters, "torso_iters": tcfg.torso_iters}, "train_wall_seconds": seconds, "loop_seconds": elapsed, "run": str(run_dir), **{k: metrics.get(k) for k in keep}}
+    return {"schedule": {"rays": tcfg.rays, "frames": tcfg.frames, "head_iters": tcfg.head_iters, "torso_iters": tcfg.torso_iters}, "train_wall_seconds": seconds, "loop_seconds": elapsed, "run": str(run_dir), **{k: metrics.get(k) for k in keep}}
 
 
 def step_bench_render(args: argparse.Namespace) -> dict:

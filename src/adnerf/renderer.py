@@ -4,8 +4,10 @@ A *field* is any callable ``field(positions, directions, **conditioning) -> Fiel
 positions and directions of shape ``(..., 3)`` (a :class:`~adnerf.fields.HeadField`, a
 :class:`~adnerf.fields.TorsoField`, a bare :class:`~adnerf.fields.RadianceField` or an analytic
 function). The conditioning (audio code, head pose, ...) is passed to :meth:`VolumeRenderer.render_rays`
-as keyword arguments and forwarded unchanged to every field call, so it must broadcast against any
-batch of points (per-frame conditioning, the AD-NeRF setting, always does).
+as keyword arguments and forwarded to every field call. A value shared by all rays (per-frame
+conditioning, the AD-NeRF setting) is forwarded unchanged and must broadcast against any batch of
+points; a value wrapped in :class:`PerRay` differs between rays (rays of several frames rendered in
+one call) and each field call gets the rows of the samples it evaluates.
 
 Passes: a coarse pass of stratified intervals; optionally a fine pass that adds importance
 samples drawn from the coarse weights (NeRF's hierarchical sampling) and evaluates a fine field
@@ -26,7 +28,7 @@ from .fields import FieldOutput
 from .rays import RayBundle, RaySamples
 from .samplers import Bounds, ImportanceSampler, StratifiedSampler
 
-__all__ = ["Field", "RenderOutput", "VolumeRenderer"]
+__all__ = ["Field", "PerRay", "RenderOutput", "VolumeRenderer"]
 
 
 class Field(Protocol):
@@ -36,6 +38,32 @@ class Field(Protocol):
 
 
 Occupancy = Callable[[Tensor], Tensor]
+
+
+@dataclass(frozen=True)
+class PerRay:
+    """A conditioning value that differs between rays: ``value (..., C)`` over the rays' batch
+    shape ``(...)``.
+
+    The renderer expands it over each ray's samples and hands a field call the rows of the samples
+    it evaluates: ``(..., S, C)`` for every sample, ``(M, C)`` for the ``M`` occupied samples that
+    empty-space skipping packs.
+    """
+
+    value: Tensor
+
+    def at_samples(self, shape: torch.Size, mask: Tensor | None) -> Tensor:
+        """The value at samples of shape ``(..., S)`` (the rays' batch shape, then samples per
+        ray), or at the samples ``mask (..., S)`` selects."""
+        if self.value.shape[:-1] != shape[:-1]:
+            raise ValueError(f"a per-ray conditioning value must have the rays' batch shape {tuple(shape[:-1])}; got {tuple(self.value.shape)}")
+        rows = self.value.unsqueeze(-2).expand(*shape, self.value.shape[-1])
+        return rows if mask is None else rows[mask]
+
+
+def _at_samples(conditioning: dict[str, Any], shape: torch.Size, mask: Tensor | None) -> dict[str, Any]:
+    """Conditioning for a field call on samples of shape ``shape`` (``mask``: those evaluated)."""
+    return {k: v.at_samples(shape, mask) if isinstance(v, PerRay) else v for k, v in conditioning.items()}
 
 
 @dataclass
@@ -69,12 +97,12 @@ def evaluate_field(field: Field, samples: RaySamples, occupancy: Occupancy | Non
     """
     positions = samples.positions()
     directions = samples.directions()
+    shape = samples.t_starts.shape
     if occupancy is None:
-        out = field(positions, directions, **conditioning)
+        out = field(positions, directions, **_at_samples(conditioning, shape, None))
         return _full(out.rgb), _full(out.density), positions.shape[:-1].numel()
     mask = occupancy(positions) & (samples.deltas > 0)
     n = int(mask.sum())
-    shape = samples.t_starts.shape
     if n == 0:
         param_dtype = _field_dtype(field, positions.dtype)
         return (
@@ -82,7 +110,7 @@ def evaluate_field(field: Field, samples: RaySamples, occupancy: Occupancy | Non
             torch.zeros(shape, dtype=param_dtype, device=positions.device),
             0,
         )
-    out = field(positions[mask], directions[mask], **conditioning)
+    out = field(positions[mask], directions[mask], **_at_samples(conditioning, shape, mask))
     out_rgb, out_density = _full(out.rgb), _full(out.density)
     rgb = torch.zeros(*shape, 3, dtype=out_rgb.dtype, device=out_rgb.device).index_put((mask,), out_rgb)
     density = torch.zeros(shape, dtype=out_density.dtype, device=out_density.device).index_put((mask,), out_density)
@@ -147,7 +175,8 @@ class VolumeRenderer:
             jitter: Jitter the stratified intervals and draw random importance samples
                 (training); deterministic otherwise.
             generator: Optional random generator.
-            **conditioning: Forwarded to every field call (e.g. ``audio=code, pose=pose``).
+            **conditioning: Forwarded to every field call (e.g. ``audio=code, pose=pose``);
+                :class:`PerRay` values ``(..., C)`` as the rows of the samples evaluated.
 
         Returns:
             A :class:`RenderOutput`.
@@ -177,7 +206,8 @@ class VolumeRenderer:
 
         Rays of batch shape ``(...)`` (e.g. a whole image ``(H, W)``) are flattened, rendered in
         chunks and reshaped back: every output has the batch shape ``(...)`` of ``rays``. A
-        per-ray ``background`` ``(..., 3)`` is chunked along with the rays.
+        per-ray ``background`` ``(..., 3)`` and :class:`PerRay` conditioning are chunked along
+        with the rays.
         """
         if chunk < 1:
             raise ValueError(f"chunk must be >= 1; got {chunk}")
@@ -187,14 +217,18 @@ class VolumeRenderer:
         bg = None
         if background is not None:
             bg = background.expand(*batch, background.shape[-1]).reshape(n, background.shape[-1])
+        for key, v in conditioning.items():
+            if isinstance(v, PerRay):
+                if v.value.shape[:-1] != batch:
+                    raise ValueError(f"per-ray conditioning {key!r} must have the rays' batch shape {tuple(batch)}; got {tuple(v.value.shape)}")
+                conditioning[key] = PerRay(v.value.reshape(n, v.value.shape[-1]))
         coarse_parts: list[Composite] = []
         fine_parts: list[Composite] = []
         evaluated = 0
         for start in range(0, max(n, 1), chunk):  # one (empty) chunk for zero rays
             sl = slice(start, start + chunk)
-            out = self.render_rays(
-                flat[sl], field, fine_field, background=None if bg is None else bg[sl], occupancy=occupancy, **conditioning
-            )
+            here = {k: PerRay(v.value[sl]) if isinstance(v, PerRay) else v for k, v in conditioning.items()}
+            out = self.render_rays(flat[sl], field, fine_field, background=None if bg is None else bg[sl], occupancy=occupancy, **here)
             coarse_parts.append(out.coarse)
             if out.fine is not None:
                 fine_parts.append(out.fine)

@@ -53,17 +53,52 @@ def eye_code(openness: Tensor) -> Tensor:
 
 @dataclass
 class FrameCondition:
-    """The signals of one frame.
+    """The signals of one frame, or of each ray of a batch drawn from several frames.
 
     Attributes:
-        audio: Audio code ``(audio_dim,)``.
-        pose: The frame's head pose, one ``R (3, 3)``, ``t (3,)`` (canonical to camera).
-        extra: Further named signals, each ``(width,)`` (``"eye"``: the openness, ``(1,)``).
+        audio: Audio code ``(audio_dim,)``; per ray ``(R, audio_dim)``.
+        pose: The frame's head pose, one ``R (3, 3)``, ``t (3,)`` (canonical to camera); per ray
+            ``R (R, 3, 3)``, ``t (R, 3)``.
+        extra: Further named signals, each ``(width,)`` (``"eye"``: the openness, ``(1,)``); per
+            ray ``(R, width)``.
     """
 
     audio: Tensor
     pose: HeadPose
     extra: Mapping[str, Tensor] = field(default_factory=dict)
+
+    @property
+    def per_ray(self) -> bool:
+        """Whether the signals are one per ray (:meth:`of_rays`) rather than one frame's."""
+        return self.pose.R.dim() > 2
+
+    @staticmethod
+    def of_rays(frames: Sequence["FrameCondition"], index: Tensor) -> "FrameCondition":
+        """Per-ray signals for a batch of rays of several frames: ray ``i`` gets the signals of
+        ``frames[index[i]]``.
+
+        Args:
+            frames: One-frame conditions with the same signals.
+            index: ``(R,)`` integer indices into ``frames``, on the signals' device.
+
+        Raises:
+            ValueError: No frames, a condition that is already per ray, or frames that carry
+                different signals.
+        """
+        if not frames:
+            raise ValueError("per-ray conditions need at least one frame's condition")
+        keys = set(frames[0].extra)
+        for c in frames:
+            if c.per_ray:
+                raise ValueError("of_rays takes one-frame conditions; got a per-ray one")
+            if set(c.extra) != keys:
+                raise ValueError(f"the frames carry different signals: {sorted(keys)} and {sorted(c.extra)}")
+
+        def pick(values: list[Tensor]) -> Tensor:
+            return torch.stack(values)[index]
+
+        pose = HeadPose(pick([c.pose.R for c in frames]), pick([c.pose.t for c in frames]))
+        return FrameCondition(pick([c.audio for c in frames]), pose, {k: pick([c.extra[k] for c in frames]) for k in sorted(keys)})
 
     def signal(self, name: str) -> Tensor:
         """One signal by name: ``"audio"``, ``"pose"`` (its 9-d code), ``"eye"`` (its code,

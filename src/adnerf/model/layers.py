@@ -30,7 +30,7 @@ from ..fields import FieldOutput
 from ..occupancy import OccupancyGrid
 from ..pose import HeadPose, directions_to_canonical
 from ..rays import RayBundle
-from ..renderer import RenderOutput, VolumeRenderer
+from ..renderer import PerRay, RenderOutput, VolumeRenderer
 from ..samplers import AABBBounds
 from .conditions import FrameCondition
 
@@ -41,14 +41,16 @@ Box = tuple[tuple[float, float, float], tuple[float, float, float]]
 
 
 class _CastField:
-    """A field called in its parameters' dtype, with the layer's conditioning vector."""
+    """A field called in its parameters' dtype, with the layer's conditioning vector: one frame's
+    ``(C,)`` held here, or the rows ``(..., C)`` of the samples evaluated, which the renderer
+    passes as ``condition`` for per-ray conditions (:class:`~adnerf.renderer.PerRay`)."""
 
     def __init__(self, field: nn.Module, condition: Tensor | None) -> None:
         self.field, self.condition = field, condition
         self.dtype = next(field.parameters()).dtype
 
-    def __call__(self, positions: Tensor, directions: Tensor) -> FieldOutput:
-        return self.field(positions.to(self.dtype), directions.to(self.dtype), self.condition)
+    def __call__(self, positions: Tensor, directions: Tensor, condition: Tensor | None = None) -> FieldOutput:
+        return self.field(positions.to(self.dtype), directions.to(self.dtype), self.condition if condition is None else condition)
 
 
 class RadianceLayer(nn.Module):
@@ -129,10 +131,16 @@ class RadianceLayer(nn.Module):
         return self.occupancy.is_occupied
 
     # ---- fields
-    def _fields(self, cond: FrameCondition) -> tuple[_CastField, _CastField]:
+    def _fields(self, cond: FrameCondition) -> tuple[_CastField, _CastField, dict[str, PerRay]]:
+        """The coarse and fine fields under ``cond``, and the renderer's conditioning: nothing
+        for one frame's condition (the fields hold its vector), the vectors ``(R, C)`` of a
+        per-ray one."""
         dtype = next(self.coarse.parameters()).dtype
         vector = cond.vector(self.conditions, dtype)
-        return _CastField(self.coarse, vector), _CastField(self.fine if self.fine is not None else self.coarse, vector)
+        per_ray = cond.per_ray and vector is not None
+        held = None if per_ray else vector
+        fields = _CastField(self.coarse, held), _CastField(self.fine if self.fine is not None else self.coarse, held)
+        return fields[0], fields[1], {"condition": PerRay(vector)} if per_ray else {}
 
     # ---- rendering
     def render(
@@ -144,18 +152,19 @@ class RadianceLayer(nn.Module):
         jitter: bool = False,
         generator: torch.Generator | None = None,
     ) -> RenderOutput:
-        """Render camera rays ``(R,)`` through the layer for one frame (with gradients).
+        """Render camera rays ``(R,)`` through the layer for one frame, or for rays of several
+        frames under a per-ray condition (:meth:`FrameCondition.of_rays`), with gradients.
 
         Args:
             rays: Camera-space rays ``(R,)``.
-            cond: The frame's condition.
+            cond: The frame's condition, or one per ray.
             background: Colour behind the layer ``(R, 3)``; ``None`` gives premultiplied colour.
             jitter: Random samples (training).
             generator: Random generator of the samples.
         """
         moved = self.to_space(rays, cond.pose)
-        coarse, fine = self._fields(cond)
-        return self.renderer(moved.origins).render_rays(moved, coarse, fine, background=background, occupancy=self.occupied(), jitter=jitter, generator=generator)
+        coarse, fine, per_ray = self._fields(cond)
+        return self.renderer(moved.origins).render_rays(moved, coarse, fine, background=background, occupancy=self.occupied(), jitter=jitter, generator=generator, **per_ray)
 
     def render_hits(self, rays: RayBundle, cond: FrameCondition, chunk: int) -> tuple[Tensor, Composite | None]:
         """Render only the rays ``(R,)`` that cross the box, ``chunk`` at a time (no background).
@@ -169,8 +178,9 @@ class RadianceLayer(nn.Module):
         hit = far > near
         if not bool(hit.any()):
             return hit, None
-        coarse, fine = self._fields(cond)
-        return hit, renderer.render_chunked(moved[hit], coarse, fine, chunk=chunk, occupancy=self.occupied()).final
+        coarse, fine, per_ray = self._fields(cond)
+        per_ray = {k: PerRay(v.value[hit]) for k, v in per_ray.items()}
+        return hit, renderer.render_chunked(moved[hit], coarse, fine, chunk=chunk, occupancy=self.occupied(), **per_ray).final
 
     @torch.no_grad()
     def update_occupancy(self, cond: FrameCondition, *, decay: float = 0.7, dilation: int = 1, generator: torch.Generator | None = None) -> float:
@@ -189,7 +199,9 @@ class RadianceLayer(nn.Module):
         """
         if self.occupancy is None:
             raise ValueError(f"layer {self.name!r} has no occupancy grid (occupancy_resolution = 0)")
-        coarse, fine = self._fields(cond)
+        if cond.per_ray:
+            raise ValueError("the occupancy grid is estimated under one frame's condition; got a per-ray one")
+        coarse, fine, _ = self._fields(cond)
 
         def density(points: Tensor) -> Tensor:
             dirs = torch.zeros_like(points)

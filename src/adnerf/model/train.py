@@ -3,9 +3,11 @@
 Stage 1 (``head``) trains the audio encoders and the coarse/fine head fields. The target of a
 pixel is the frame where the parsing says *head* and the background plate elsewhere; the plate is
 the background of the volume rendering (through the residual transmittance). Each iteration takes
-one training frame (its pose and audio window, as in the paper) and draws rays among the pixels
-whose ray crosses the head box, a quarter of them around the mouth (where the audio matters and
-which is a small part of the head). AudioAttNet is switched on after ``att_start`` of the iterations.
+one training frame (its pose and audio window, as in the paper; or ``frames`` of them, whose rays
+are rendered in one call, each ray under its own frame's condition) and draws rays among the
+pixels whose ray crosses the head box, a quarter of them around the mouth (where the audio matters
+and which is a small part of the head). AudioAttNet is switched on after ``att_start`` of the
+iterations.
 
 Losses: the MSE of the coarse and fine colours, plus ``mask_weight`` times the MSE of their
 opacities against the parsing mask of the layer being trained.
@@ -329,8 +331,9 @@ class Trainer:
         """Frame ``frame``'s condition: its audio code, head pose and (when the head reads it) eye openness."""
         return self.model.condition(code, pose, None if self.eye is None else self.eye[frame])
 
-    def head_target(self, frame: int, pix: torch.Tensor) -> torch.Tensor:
-        """Stage-1 target colours ``(R, 3)`` of pixels ``pix``: the frame on head pixels, the plate elsewhere."""
+    def head_target(self, frame: int | torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
+        """Stage-1 target colours ``(R, 3)`` of pixels ``pix`` of ``frame`` (or of each ray's frame
+        ``(R,)``): the frame on head pixels, the plate elsewhere."""
         return torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
 
     def maybe_update_occupancy(self, layer: str, step: int, iters: int, cond: FrameCondition) -> None:
@@ -374,10 +377,27 @@ class Trainer:
                 self.save()
         bar.close()
 
-    def head_part(self, frame: int, pix: torch.Tensor, cond: FrameCondition) -> Part:
-        """Render this process's part of stage-1 rays ``pix`` of ``frame``: ``(render, target, head
-        mask, None)`` (the mask holds on every ray)."""
-        pix = self.ranks.part(pix)  # every process drew the same batch; it renders its part
+    def batch_of(self, groups: list[tuple[int, torch.Tensor, FrameCondition]]) -> tuple[int | torch.Tensor, torch.Tensor, FrameCondition]:
+        """This process's rays of a step's frames ``(frame, pixels (n,), condition)``, to render in
+        one call: ``(the frame, or the frame of each ray (R,); pixel indices (R,); the condition,
+        per ray for several frames)``.
+
+        Every process drew the same groups and renders its part of each group's rays. One call
+        for several frames is what a GPU wants (a step's time there is mostly launches, not
+        arithmetic); the rays and losses are those of a call per frame.
+        """
+        if len(groups) == 1:
+            frame, pix, cond = groups[0]
+            return frame, self.ranks.part(pix), cond
+        parts = [self.ranks.part(pix) for _, pix, _ in groups]
+        counts = torch.tensor([len(p) for p in parts], device=self.device)
+        which = torch.repeat_interleave(torch.arange(len(groups), device=self.device), counts)
+        frames = torch.tensor([frame for frame, _, _ in groups], device=self.device)[which]
+        return frames, torch.cat(parts), FrameCondition.of_rays([cond for _, _, cond in groups], which)
+
+    def head_part(self, frame: int | torch.Tensor, pix: torch.Tensor, cond: FrameCondition) -> Part:
+        """Render stage-1 rays ``pix`` (this process's; :meth:`batch_of`) of ``frame`` (or of each
+        ray's frame): ``(render, target, head mask, None)`` (the mask holds on every ray)."""
         with mixed_precision(self.device, self.tcfg.amp):
             out = self.model.layers["head"].render(self.rays[pix], cond, background=self.plate[pix], jitter=True, generator=self.ranks.shard(self.generator))
         self.samples += out.samples_evaluated
@@ -413,7 +433,7 @@ class Trainer:
             self.model.set_audio_smoothing(step >= tcfg.att_start * tcfg.head_iters)
             frames = [self.pick_frame() for _ in range(tcfg.frames)]
             n = tcfg.rays // tcfg.frames  # rays per frame
-            parts = []
+            groups = []
             for k, frame in enumerate(frames):
                 pose = self.ds.head_pose(frame, device=self.device)
                 near, far = self.model.layers["head"].crossing(self.rays, pose)
@@ -424,10 +444,11 @@ class Trainer:
                 cond = self.condition(frame, self.code(frame), pose)
                 if k == 0:
                     self.maybe_update_occupancy("head", step, tcfg.head_iters, cond)
-                parts.append(self.head_part(frame, pix, cond))
+                groups.append((frame, pix, cond))
+            parts = [self.head_part(*self.batch_of(groups))]
             eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
-                parts.append(self.head_part(*eye_batch))
+                parts.append(self.head_part(*self.batch_of([eye_batch])))
             return _optimise(parts, tcfg.mask_weight, self.opt_head, self.ranks)
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
@@ -460,9 +481,10 @@ class Trainer:
         # The cache's precision from the start, so that a run resumed in stage 2 trains on the same values.
         return Layer(rgb.float(), opacity.float())
 
-    def torso_part(self, frame: int, pix: torch.Tensor, cond: FrameCondition, head: Layer, *, jitter: bool = True) -> Part:
-        """Render stage-2 rays ``pix`` of ``frame`` through the torso with the frozen head ``head``
-        (that frame's premultiplied layer at those pixels) in the model's order.
+    def torso_part(self, frame: int | torch.Tensor, pix: torch.Tensor, cond: FrameCondition, head: Layer, *, jitter: bool = True) -> Part:
+        """Render stage-2 rays ``pix`` of ``frame`` (or of each ray's frame, ``(R,)``, under a
+        per-ray condition) through the torso with the frozen head ``head`` (the premultiplied
+        layer at those pixels) in the model's order.
 
         Returns:
             ``(render, target, torso mask, rays whose opacity the mask holds)``. The render's colours
@@ -500,15 +522,20 @@ class Trainer:
 
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
-            frame = self.pick_frame()
-            pose = self.ds.head_pose(frame, device=self.device)
-            person = torch.nonzero(self.is_torso[frame])[:, 0]
-            n_person = int(round(tcfg.torso_person_rays * tcfg.rays)) if person.numel() else 0
-            pix = torch.cat([self.pick_rays(candidates, tcfg.rays - n_person), self.pick_rays(person, n_person)])
-            pix = self.ranks.part(pix)
-            cond = self.condition(frame, codes[frame], pose)
-            self.maybe_update_occupancy("torso", step, tcfg.torso_iters, cond)
-            part = self.torso_part(frame, pix, cond, Layer(heads.rgb[frame, pix], heads.opacity[frame, pix]))
+            frames = [self.pick_frame() for _ in range(tcfg.frames)]
+            n = tcfg.rays // tcfg.frames  # rays per frame
+            groups = []
+            for k, frame in enumerate(frames):
+                pose = self.ds.head_pose(frame, device=self.device)
+                person = torch.nonzero(self.is_torso[frame])[:, 0]
+                n_person = int(round(tcfg.torso_person_rays * n)) if person.numel() else 0
+                pix = torch.cat([self.pick_rays(candidates, n - n_person), self.pick_rays(person, n_person)])
+                cond = self.condition(frame, codes[frame], pose)
+                if k == 0:
+                    self.maybe_update_occupancy("torso", step, tcfg.torso_iters, cond)
+                groups.append((frame, pix, cond))
+            which, pix, cond = self.batch_of(groups)
+            part = self.torso_part(which, pix, cond, Layer(heads.rgb[which, pix], heads.opacity[which, pix]))
             return _optimise([part], tcfg.mask_weight, self.opt_torso, self.ranks)
 
         self._loop("torso", tcfg.torso_iters, step_fn, max_steps)

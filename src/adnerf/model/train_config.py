@@ -29,8 +29,9 @@ class TrainConfig:
             cost 0.9 dB of full-frame held-out PSNR (31.4 -> 30.5) and nothing in the mouth crop
             (26.5 dB both), and saved the 2 minutes that keep the demo within 15 minutes.
         rays: Rays per iteration (an eye batch adds ``eye_rays * rays``).
-        frames: Training frames each stage-1 iteration draws its rays from, ``rays // frames``
-            each, every frame under its own audio code and pose (1: the paper's one frame a step).
+        frames: Training frames each iteration (of either stage) draws its rays from,
+            ``rays // frames`` each, every frame under its own audio code and pose (1: the paper's
+            one frame a step).
         lr: Initial learning rate of the fields (Adam).
         lr_audio: Initial learning rate of the audio encoders.
         lr_final: Final learning rate as a fraction of the initial one (exponential decay).
@@ -87,23 +88,24 @@ class TrainConfig:
     preset: str = "fast"
 
     def scaled(self, k: int) -> "TrainConfig":
-        """The same schedule with ``k`` times the rays per step in ``k`` times fewer steps.
+        """The same schedule in ``k`` times fewer, ``k`` times larger steps: ``k`` times the rays,
+        drawn from ``k`` times the frames (so each frame is drawn as often and with as many rays
+        as before), and the learning rates times ``sqrt(k)``.
 
         The iteration counts and the per-iteration periods (occupancy updates, checkpoints, log
         lines) are divided by ``k`` (rounded, at least 1; a stage of 0 iterations stays 0), so
         the run draws as many rays, updates its occupancy grid, checkpoints and logs after as
-        many rays as before; fractions of a stage and the learning rates are kept.
+        many rays as before; fractions of a stage are kept.
 
-        On a GPU a step costs nearly the same for 1024 rays as for 8192 (33.7 and 46.4 ms per
-        stage-1 step on an H200), so a scaled schedule trains in about ``1/k`` of the time; but
-        each frame is then drawn ``k`` times less often, and the audio encoder learns the mouth
-        from those draws. Measured on the demo scene (``tools/gpu_check.py``, README *On a GPU*):
-        ``k = 2`` on an H200 trained in 116 s instead of about 213 s, with held-out PSNR 29.8 dB
-        against 30.8 (the demo's bar is 30) and 26.7 dB against 28.1 in the mouth crop; ``k = 4``
-        on the CPU lost 1.9 dB of PSNR, 3.0 dB in the mouth crop and mouth-opening correlation
-        0.79 -> 0.66, and on the real clip at 256 px (an H200, 46 s of training against the
-        CPU's 602 s) 3.9 dB of PSNR and 4.5 dB in the mouth crop. The defaults therefore stay
-        unscaled on every device.
+        This is the schedule for a GPU, where a step costs nearly the same for 1024 rays as for
+        8192 (33.7 and 46.4 ms per stage-1 step on an H200), and a step's frames are rendered in
+        one call. Measured on the shared real clip at 256 px (2-core CPU, the bench's 4345 + 3555
+        iterations, ``k = 4``; held-out frame / mouth crop / head PSNR): the default schedule
+        30.81 / 27.40 / 30.86 and 30.94 / 27.69 / 30.76 dB (seeds 0 and 1); ``k = 4`` 30.76 /
+        27.47 / 30.84 dB. Each part was needed: the same rays from one frame a step lost 3.9 dB
+        (an H200), and from four frames at the unscaled learning rates 0.8 dB (the torso, taking
+        four times fewer Adam steps, lagged most). ``k = 2`` and ``k = 8`` are not measured on
+        the real clip. The defaults stay unscaled on every device (``adnerf train --scale K``).
 
         Raises:
             ValueError: ``k`` is not a positive integer.
@@ -117,6 +119,9 @@ class TrainConfig:
         return replace(
             self,
             rays=self.rays * k,
+            frames=self.frames * k,
+            lr=self.lr * math.sqrt(k),
+            lr_audio=self.lr_audio * math.sqrt(k),
             head_iters=fewer(self.head_iters),
             torso_iters=fewer(self.torso_iters),
             occupancy_every=fewer(self.occupancy_every),

@@ -1,0 +1,150 @@
+"""Rays of several frames rendered in one call, each under its own frame's condition: the same
+colours, opacities and gradients as a call per frame, and the same loss for training."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from adnerf.model.conditions import FrameCondition
+from adnerf.model.data import SceneMeta
+from adnerf.model.talking_head import TalkingHead, model_config
+from adnerf.model.train import _optimise
+from adnerf.pose import HeadPose, euler_rotation
+from adnerf.renderer import PerRay
+
+SIZE = 20
+FRAMES = 3
+
+
+def _model(eye: bool = False) -> tuple[TalkingHead, SceneMeta]:
+    meta = SceneMeta(
+        width=SIZE, height=SIZE, intrinsics=(26.0, 26.0, SIZE / 2, SIZE / 2), fps=25.0, near=4.0, far=8.0, head_aabb=((-0.6, -0.7, -0.6), (0.6, 0.7, 0.6)),
+        torso_aabb=((-1.2, 0.3, 4.5), (1.2, 2.0, 6.5)), mouth=(0.0, 0.3, -0.5), feature_kind="logmel", feature_dim=8, n_frames=FRAMES, train=list(range(FRAMES)), test=[],
+    )  # fmt: skip
+    torch.manual_seed(0)
+    model = TalkingHead(model_config(meta, eye=eye))
+    for p in model.parameters():  # away from the initial transparent head, so every ray carries colour
+        p.data.add_(0.3 * torch.randn_like(p))
+    return model, meta
+
+
+def _conditions(model: TalkingHead) -> list[FrameCondition]:
+    """Three frames with different speech, poses (turned by up to 12 degrees) and eye openings."""
+    like = torch.zeros((), dtype=torch.float64)
+    conds = []
+    for k in range(FRAMES):
+        R = euler_rotation(0.1 * k, -0.2 + 0.1 * k, 0.05 * k, like=like)
+        pose = HeadPose(R, torch.tensor([0.02 * k, 0.2, 6.0 - 0.1 * k], dtype=torch.float64))
+        code = torch.randn(model.config.audio_dim, generator=torch.Generator().manual_seed(k), requires_grad=True)
+        conds.append(model.condition(code, pose, 1.0 - 0.4 * k))
+    return conds
+
+
+def _frames_of_rays(meta: SceneMeta) -> tuple[object, torch.Tensor]:
+    """Every pixel of every frame, as one batch of rays, and the frame of each ray."""
+    rays = meta.camera().rays().flatten()
+    n = rays.origins.shape[0]
+    which = torch.arange(FRAMES).repeat_interleave(n)
+    return rays, which
+
+
+@pytest.mark.parametrize("layer", ["head", "torso"])
+@pytest.mark.parametrize("occupancy", [False, True])
+def test_one_call_for_several_frames_renders_what_a_call_per_frame_does(layer: str, occupancy: bool) -> None:
+    model, meta = _model(eye=True)
+    conds = _conditions(model)
+    lay = model.layers[layer]
+    if occupancy:  # empty-space skipping packs the samples: each must keep its own ray's condition
+        lay.update_occupancy(conds[0], generator=torch.Generator().manual_seed(0))  # the grid counts as estimated
+        grid = lay.occupancy
+        grid.occupied = torch.rand(grid.occupied.shape, generator=torch.Generator().manual_seed(2)) < 0.5  # half the cells empty
+    else:
+        lay.occupancy = None
+    rays, which = _frames_of_rays(meta)
+    n = rays.origins.shape[0]
+    apart = [lay.render(rays, c) for c in conds]
+    together = lay.render(rays[torch.arange(FRAMES * n) % n], FrameCondition.of_rays(conds, which))
+    for part in ("coarse", "fine"):
+        for key in ("rgb", "opacity", "depth"):
+            want = torch.cat([getattr(getattr(o, part), key) for o in apart])
+            got = getattr(getattr(together, part), key)
+            assert torch.allclose(got, want, atol=1e-5, rtol=1e-5), (part, key, float((got - want).abs().max()))
+    # The frames differ, so a batch rendered under one frame's condition would not pass.
+    first = torch.cat([apart[0].final.rgb] * FRAMES)
+    assert float((together.final.rgb - first).detach().abs().max()) > 0.05
+    # Gradients reach each frame's own audio code as they do from its own call.
+    (torch.cat([o.final.rgb for o in apart]).sum()).backward()
+    want_grads = [c.audio.grad.clone() for c in conds]
+    for c in conds:
+        c.audio.grad = None
+    together.final.rgb.sum().backward()
+    for c, want in zip(conds, want_grads):
+        assert want.abs().max() > 0
+        assert torch.allclose(c.audio.grad, want, atol=1e-5, rtol=1e-4)
+
+
+def test_render_hits_takes_each_rays_condition_through_its_chunks() -> None:
+    model, meta = _model()
+    conds = _conditions(model)
+    head = model.layers["head"]
+    rays, which = _frames_of_rays(meta)
+    n = rays.origins.shape[0]
+    batch = rays[torch.arange(FRAMES * n) % n]
+    with torch.no_grad():
+        hit, got = head.render_hits(batch, FrameCondition.of_rays(conds, which), chunk=37)
+        for k, c in enumerate(conds):
+            hit_k, want = head.render_hits(rays, c, chunk=1000)
+            assert torch.equal(hit[which == k], hit_k)
+            assert torch.allclose(got.rgb[which[hit] == k], want.rgb, atol=1e-5, rtol=0)
+
+
+def test_per_ray_conditions_are_each_rays_frame_and_refused_where_they_cannot_be() -> None:
+    model, _ = _model(eye=True)
+    conds = _conditions(model)
+    which = torch.tensor([2, 0, 0, 1])
+    c = FrameCondition.of_rays(conds, which)
+    assert c.per_ray and not conds[0].per_ray
+    for i, k in enumerate(which.tolist()):
+        assert torch.equal(c.audio[i], conds[k].audio) and torch.equal(c.pose.R[i], conds[k].pose.R)
+        assert torch.equal(c.vector(("audio", "eye"), torch.float32)[i], conds[k].vector(("audio", "eye"), torch.float32))
+    assert c.pose.code().shape == (4, 9)
+    with pytest.raises(ValueError, match="at least one"):
+        FrameCondition.of_rays([], which)
+    with pytest.raises(ValueError, match="different signals"):
+        FrameCondition.of_rays([conds[0], FrameCondition(conds[1].audio, conds[1].pose)], which)
+    with pytest.raises(ValueError, match="one-frame"):
+        FrameCondition.of_rays([c], which)
+    with pytest.raises(ValueError, match="one frame's condition"):
+        model.layers["head"].update_occupancy(c)
+    with pytest.raises(ValueError, match="batch shape"):
+        PerRay(torch.zeros(5, 2)).at_samples(torch.Size([4, 8]), None)
+
+
+def test_one_part_of_several_frames_is_the_loss_of_a_part_per_frame() -> None:
+    """``_optimise`` weights each part's means by its rays, so joining equal parts changes nothing."""
+    model, meta = _model()
+    conds = _conditions(model)
+    head = model.layers["head"]
+    rays, which = _frames_of_rays(meta)
+    n = rays.origins.shape[0]
+    target = torch.rand(FRAMES * n, 3, generator=torch.Generator().manual_seed(5))
+    mask = torch.rand(FRAMES * n, generator=torch.Generator().manual_seed(6)) > 0.5
+
+    def step(joined: bool) -> tuple[float, list[torch.Tensor]]:
+        opt = torch.optim.SGD(head.parameters(), lr=0.0)  # a step that moves nothing: only the loss and gradients are read
+        if joined:
+            parts = [(head.render(rays[torch.arange(FRAMES * n) % n], FrameCondition.of_rays(conds, which)), target, mask, None)]
+        else:
+            parts = [(head.render(rays, conds[k]), target[which == k], mask[which == k], None) for k in range(FRAMES)]
+        loss, _ = _optimise(parts, 0.1, opt)
+        return loss, [p.grad.clone() for p in head.parameters() if p.grad is not None]
+
+    loss_apart, grads_apart = step(False)
+    loss_joined, grads_joined = step(True)
+    assert math.isclose(loss_joined, loss_apart, rel_tol=1e-5)
+    assert len(grads_joined) == len(grads_apart) > 0
+    for g, h in zip(grads_joined, grads_apart):
+        assert torch.allclose(g, h, atol=1e-6, rtol=1e-3)
