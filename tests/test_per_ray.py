@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from adnerf.fields import FieldConfig, RadianceField, SampleRows, fast_config, paper_config
 from adnerf.model.conditions import FrameCondition
 from adnerf.model.data import SceneMeta
 from adnerf.model.talking_head import TalkingHead, model_config
@@ -148,3 +149,35 @@ def test_one_part_of_several_frames_is_the_loss_of_a_part_per_frame() -> None:
     assert len(grads_joined) == len(grads_apart) > 0
     for g, h in zip(grads_joined, grads_apart):
         assert torch.allclose(g, h, atol=1e-6, rtol=1e-3)
+
+
+@pytest.mark.parametrize("config", ["paper", "fast"])
+def test_a_field_folds_each_rays_condition_as_the_per_point_condition_reads(config: str) -> None:
+    """``SampleRows`` (a row per ray, folded into the conditioned layers' biases, at the input and
+    at the skip) against the same condition copied to every point; values and gradients."""
+    cond_dim = 7
+    cfg = paper_config(cond_dim) if config == "paper" else fast_config(cond_dim)
+    cfg = FieldConfig.from_dict({**cfg.to_dict(), "depth": 6, "width": 32, "density_activation": "softplus"})  # no dead densities
+    torch.manual_seed(3)
+    field = RadianceField(cfg).double()
+    assert config == "fast" or cfg.skips == (4,)
+    rows = torch.randn(5, cond_dim, dtype=torch.float64, requires_grad=True)
+    ray = torch.tensor([[0, 0, 3], [4, 1, 1], [2, 2, 0], [3, 4, 4]])  # the points' rays, shape (4, 3)
+    points = torch.rand(4, 3, 3, dtype=torch.float64) * 1.6 - 0.8
+    dirs = torch.nn.functional.normalize(torch.randn(4, 3, 3, dtype=torch.float64), dim=-1)
+    folded = field(points, dirs, SampleRows(rows, ray))
+    grads = torch.autograd.grad(folded.rgb.sum() + folded.density.sum(), [rows, *field.parameters()])
+    dense = field(points, dirs, rows[ray])
+    want = torch.autograd.grad(dense.rgb.sum() + dense.density.sum(), [rows, *field.parameters()])
+    assert torch.allclose(folded.rgb, dense.rgb, atol=1e-12) and torch.allclose(folded.density, dense.density, atol=1e-12)
+    assert float(dense.density.std()) > 0 and float(grads[0].abs().max()) > 0
+    for g, w in zip(grads, want):
+        assert torch.allclose(g, w, atol=1e-12)
+    # Another row for one point changes that point only.
+    moved = ray.clone()
+    moved[1, 0] = 2
+    other = field(points, dirs, SampleRows(rows, moved))
+    changed = (other.rgb - folded.rgb).abs().amax(dim=-1) > 1e-9
+    assert changed[1, 0] and changed.sum() == 1
+    with pytest.raises(ValueError, match="ray index"):
+        field(points, dirs, SampleRows(rows, ray[:2]))

@@ -14,8 +14,8 @@ import torch
 from adnerf.model import train as train_module
 from adnerf.model.data import LABEL_HEAD, load_dataset
 from adnerf.model.layers import RadianceLayer
-from adnerf.model.talking_head import TalkingHead
-from adnerf.model.train import TrainConfig, train
+from adnerf.model.talking_head import TalkingHead, model_config
+from adnerf.model.train import TrainConfig, Trainer, train
 from adnerf.synth import SynthConfig, synthesize
 
 
@@ -98,3 +98,20 @@ def test_frames_per_step_splits_the_rays_over_frames_each_under_its_own_speech(t
     for bad in (0, 3):  # none, or a count that does not divide the 1024 rays
         with pytest.raises(ValueError, match="frames"):
             TrainConfig(frames=bad).validate()
+
+
+def test_each_frames_head_box_pixels_are_kept_from_its_first_draw(tmp_path: Path) -> None:
+    data = synthesize(tmp_path / "data", SynthConfig(seconds=1.2, size=40, seed=4))
+    ds = load_dataset(data, truth=False)
+    tr = Trainer(tmp_path / "run", ds, model_config(ds.meta), TrainConfig(), "cpu", False)
+    head = tr.model.layers["head"]
+    sets = []
+    for _ in range(2):  # made, then kept
+        for f in ds.meta.train:
+            pose = ds.head_pose(f)
+            near, far = head.crossing(tr.rays, pose)
+            want = torch.nonzero(far > near)[:, 0]
+            got = tr.head_box_pixels(f, pose)
+            assert torch.equal(got, want), f
+            sets.append(frozenset(got.tolist()))
+    assert len(set(sets)) > 1  # the head moves: frames differ, so one frame's pixels kept for all would fail

@@ -25,7 +25,7 @@ from torch import Tensor, nn
 from .encodings import Encoding, PositionalEncoding, TriPlaneEncoding
 from .pose import HeadPose, directions_to_canonical
 
-__all__ = ["FieldConfig", "FieldOutput", "HeadField", "RadianceField", "TorsoField", "fast_config", "paper_config"]
+__all__ = ["FieldConfig", "FieldOutput", "HeadField", "RadianceField", "SampleRows", "TorsoField", "fast_config", "paper_config"]
 
 POSE_CODE_DIM = 9
 
@@ -41,6 +41,24 @@ class FieldOutput:
 
     rgb: Tensor
     density: Tensor
+
+
+@dataclass(frozen=True)
+class SampleRows:
+    """A condition given per ray and read at samples: ``rows (R, C)``, one per ray, and
+    ``ray (...)``, the row of each point of the field call (integer indices into ``rows``).
+
+    :class:`RadianceField` folds each row into its conditioned layers' biases once per ray and
+    gathers the result per point, rather than carrying ``C`` values per point through the layer
+    (what :meth:`dense` gives, for fields that want the plain per-point condition).
+    """
+
+    rows: Tensor
+    ray: Tensor
+
+    def dense(self) -> Tensor:
+        """The condition of each point, ``(..., C)``."""
+        return self.rows[self.ray]
 
 
 @dataclass
@@ -182,8 +200,9 @@ class RadianceField(nn.Module):
         Args:
             positions: Points in the field's own space, shape ``(..., 3)``.
             directions: Unit view directions ``(..., 3)``; required when the config uses them.
-            condition: Conditioning ``(..., cond_dim)`` or a single ``(cond_dim,)`` vector shared
-                by all points; required iff ``cond_dim > 0``.
+            condition: Conditioning ``(..., cond_dim)``, a single ``(cond_dim,)`` vector shared
+                by all points, or :class:`SampleRows` (one vector per ray, ``ray`` of the
+                points' shape ``(...)``); required iff ``cond_dim > 0``.
 
         Returns:
             :class:`FieldOutput` with ``rgb (..., 3)`` and ``density (...)``, in the dtype of the
@@ -192,13 +211,19 @@ class RadianceField(nn.Module):
         cfg = self.config
         batch = positions.shape[:-1]
         h_in = self.position_encoding(positions)
-        shared: Tensor | None = None  # one condition for every point: folded into the layer biases
+        # One condition for every point, or one per ray: folded into the layer biases.
+        shared: Tensor | SampleRows | None = None
         if cfg.cond_dim:
             if condition is None:
                 raise ValueError(f"this field is conditioned ({cfg.cond_dim}-d) but no condition was given")
-            if condition.shape[-1] != cfg.cond_dim:
-                raise ValueError(f"condition must have {cfg.cond_dim} features; got shape {tuple(condition.shape)}")
-            if condition.dim() == 1:
+            width = condition.rows.shape[-1] if isinstance(condition, SampleRows) else condition.shape[-1]
+            if width != cfg.cond_dim:
+                raise ValueError(f"condition must have {cfg.cond_dim} features; got {width}")
+            if isinstance(condition, SampleRows):
+                if condition.ray.shape != batch:
+                    raise ValueError(f"the rows' ray index must have the points' shape {tuple(batch)}; got {tuple(condition.ray.shape)}")
+                shared = SampleRows(condition.rows.to(h_in), condition.ray)
+            elif condition.dim() == 1:
                 shared = condition.to(h_in)
             else:
                 h_in = torch.cat([h_in, condition.to(h_in).expand(*batch, cfg.cond_dim)], dim=-1)
@@ -211,9 +236,14 @@ class RadianceField(nn.Module):
             if shared is None or not (i == 0 or i in cfg.skips):
                 h = F.relu(layer(h))
             else:
-                # W [x; c] + b == W_x x + (W_c c + b): the same layer without a per-point copy of c.
+                # W [x; c] + b == W_x x + (W_c c + b): the same layer without a per-point copy of c
+                # (per ray: W_c c + b once a ray, gathered per point).
                 k = cfg.cond_dim
-                h = F.relu(F.linear(h, layer.weight[:, :-k], layer.bias + layer.weight[:, -k:] @ shared))
+                w_x, w_c = layer.weight[:, :-k], layer.weight[:, -k:]
+                if isinstance(shared, SampleRows):
+                    h = F.relu(F.linear(h, w_x) + F.linear(shared.rows, w_c, layer.bias)[shared.ray])
+                else:
+                    h = F.relu(F.linear(h, w_x, layer.bias + w_c @ shared))
         raw_density = self.density_head(h)[..., 0] + cfg.density_bias
         density = F.relu(raw_density) if cfg.density_activation == "relu" else F.softplus(raw_density)
         if self.direction_encoding is not None:

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from .compositor import Composite, composite
-from .fields import FieldOutput
+from .fields import FieldOutput, SampleRows
 from .rays import RayBundle, RaySamples
 from .samplers import Bounds, ImportanceSampler, StratifiedSampler
 
@@ -45,20 +45,21 @@ class PerRay:
     """A conditioning value that differs between rays: ``value (..., C)`` over the rays' batch
     shape ``(...)``.
 
-    The renderer expands it over each ray's samples and hands a field call the rows of the samples
-    it evaluates: ``(..., S, C)`` for every sample, ``(M, C)`` for the ``M`` occupied samples that
-    empty-space skipping packs.
+    The renderer hands a field call :class:`~adnerf.fields.SampleRows`: the rays' values ``(R,
+    C)`` and the ray of each sample it evaluates, ``(..., S)`` for every sample or ``(M,)`` for
+    the ``M`` occupied samples that empty-space skipping packs.
     """
 
     value: Tensor
 
-    def at_samples(self, shape: torch.Size, mask: Tensor | None) -> Tensor:
+    def at_samples(self, shape: torch.Size, mask: Tensor | None) -> SampleRows:
         """The value at samples of shape ``(..., S)`` (the rays' batch shape, then samples per
         ray), or at the samples ``mask (..., S)`` selects."""
         if self.value.shape[:-1] != shape[:-1]:
             raise ValueError(f"a per-ray conditioning value must have the rays' batch shape {tuple(shape[:-1])}; got {tuple(self.value.shape)}")
-        rows = self.value.unsqueeze(-2).expand(*shape, self.value.shape[-1])
-        return rows if mask is None else rows[mask]
+        rays = shape[:-1].numel()
+        ray = torch.arange(rays, device=self.value.device).reshape(*shape[:-1], 1).expand(shape)
+        return SampleRows(self.value.reshape(rays, self.value.shape[-1]), ray if mask is None else ray[mask])
 
 
 def _at_samples(conditioning: dict[str, Any], shape: torch.Size, mask: Tensor | None) -> dict[str, Any]:

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from ..compositor import Composite
-from ..fields import FieldOutput
+from ..fields import FieldOutput, SampleRows
 from ..occupancy import OccupancyGrid
 from ..pose import HeadPose, directions_to_canonical
 from ..rays import RayBundle
@@ -42,14 +42,15 @@ Box = tuple[tuple[float, float, float], tuple[float, float, float]]
 
 class _CastField:
     """A field called in its parameters' dtype, with the layer's conditioning vector: one frame's
-    ``(C,)`` held here, or the rows ``(..., C)`` of the samples evaluated, which the renderer
-    passes as ``condition`` for per-ray conditions (:class:`~adnerf.renderer.PerRay`)."""
+    ``(C,)`` held here, or each ray's (:class:`~adnerf.fields.SampleRows` of the samples
+    evaluated), which the renderer passes as ``condition`` for per-ray conditions
+    (:class:`~adnerf.renderer.PerRay`)."""
 
     def __init__(self, field: nn.Module, condition: Tensor | None) -> None:
         self.field, self.condition = field, condition
         self.dtype = next(field.parameters()).dtype
 
-    def __call__(self, positions: Tensor, directions: Tensor, condition: Tensor | None = None) -> FieldOutput:
+    def __call__(self, positions: Tensor, directions: Tensor, condition: Tensor | SampleRows | None = None) -> FieldOutput:
         return self.field(positions.to(self.dtype), directions.to(self.dtype), self.condition if condition is None else condition)
 
 
