@@ -420,8 +420,8 @@ class Trainer:
         """For heads that blink: ``eye_rays * rays`` more rays around the eyes of a frame drawn
         among the blinking ones in ``blink_frames`` of the iterations (else among all), under the
         audio code of another random frame, so the eye condition is taught without taking rays or
-        frames from the rest of the head, and alone explains the blinks; ``None`` for
-        heads without it (no random draw is made then)."""
+        frames from the rest of the head, and alone explains the blinks (rendered in the same
+        call as the step's frames); ``None`` for heads without it (no random draw is made then)."""
         if not self.blinking.numel() or self.ds.meta.eyes is None or self.tcfg.eye_rays <= 0:
             return None
         frame = self.pick_frame(blinks=True)
@@ -457,11 +457,10 @@ class Trainer:
                 if k == 0:
                     self.maybe_update_occupancy("head", step, tcfg.head_iters, cond)
                 groups.append((frame, pix, cond))
-            parts = [self.head_part(*self.batch_of(groups))]
             eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
-                parts.append(self.head_part(*self.batch_of([eye_batch])))
-            return _optimise(parts, tcfg.mask_weight, self.opt_head, self.ranks)
+                groups.append(eye_batch)
+            return _optimise([self.head_part(*self.batch_of(groups))], tcfg.mask_weight, self.opt_head, self.ranks)
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
