@@ -102,7 +102,8 @@ class TrainConfig:
         one call. Measured on the shared real clip at 256 px (2-core CPU, the bench's 4345 + 3555
         iterations, ``k = 4``; held-out frame / mouth crop / head PSNR): the default schedule
         30.81 / 27.40 / 30.86 and 30.94 / 27.69 / 30.76 dB (seeds 0 and 1); ``k = 4`` 30.76 /
-        27.47 / 30.84 dB. Each part was needed: the same rays from one frame a step lost 3.9 dB
+        27.47 / 30.84 and 30.36 / 26.89 / 30.72 dB, with lower landmark distances (mouth LMD
+        1.73, 1.74 px against 1.77, 1.80). Each part was needed: the same rays from one frame a step lost 3.9 dB
         (an H200), and from four frames at the unscaled learning rates 0.8 dB (the torso, taking
         four times fewer Adam steps, lagged most). ``k = 2`` and ``k = 8`` are not measured on
         the real clip. The defaults stay unscaled on every device (``adnerf train --scale K``).
