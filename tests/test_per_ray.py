@@ -4,17 +4,27 @@ colours, opacities and gradients as a call per frame, and the same loss for trai
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
 
-from adnerf.fields import FieldConfig, RadianceField, SampleRows, fast_config, paper_config
+from adnerf.fields import (
+    FieldConfig,
+    RadianceField,
+    SampleRows,
+    fast_config,
+    paper_config,
+)
 from adnerf.model.conditions import FrameCondition
-from adnerf.model.data import SceneMeta
+from adnerf.model.data import SceneMeta, load_dataset
+from adnerf.model.distributed import Ranks
 from adnerf.model.talking_head import TalkingHead, model_config
-from adnerf.model.train import _optimise
+from adnerf.model.train import TrainConfig, Trainer, _optimise
 from adnerf.pose import HeadPose, euler_rotation
 from adnerf.renderer import PerRay
+from adnerf.rng import uniform
+from adnerf.synth import SynthConfig, synthesize
 
 SIZE = 20
 FRAMES = 3
@@ -181,3 +191,33 @@ def test_a_field_folds_each_rays_condition_as_the_per_point_condition_reads(conf
     assert changed[1, 0] and changed.sum() == 1
     with pytest.raises(ValueError, match="ray index"):
         field(points, dirs, SampleRows(rows, ray[:2]))
+
+
+def test_processes_split_each_frames_rays_and_draw_what_one_process_draws(tmp_path: Path) -> None:
+    """Under two processes each renders its half of every frame's rays of a step, with the random
+    numbers one process draws for those rays: together they are the one-process batch."""
+    data = synthesize(tmp_path / "data", SynthConfig(seconds=1.2, size=24, voice="formant", seed=2))
+    ds = load_dataset(data, truth=False)
+    sizes = (8, 4, 12)  # the rays of three frames (an eye batch may be smaller than a frame's)
+    batches = {}
+    for ranks in (Ranks(), Ranks(0, 2, "gloo"), Ranks(1, 2, "gloo")):
+        tr = Trainer(tmp_path / f"run{ranks.rank}{ranks.world}", ds, model_config(ds.meta), TrainConfig(seed=5), "cpu", False, ranks)
+        frames = ds.meta.train[:3]
+        groups = [(f, torch.arange(100 * k, 100 * k + n), tr.condition(f, torch.full((64,), float(f)), ds.head_pose(f))) for k, (f, n) in enumerate(zip(frames, sizes))]
+        b = tr.batch_of(groups)
+        draws = uniform((len(b.pixels), 5), dtype=torch.float64, device="cpu", generator=b.generator)
+        batches[(ranks.rank, ranks.world)] = (b, draws)
+    one, one_draws = batches[(0, 1)]
+    halves = [batches[(r, 2)] for r in (0, 1)]
+    # Reassemble the halves group by group: process 0's part of a group, then process 1's.
+    order, start = [], 0
+    for n in sizes:
+        order += [(r, start // 2 + i) for r in (0, 1) for i in range(n // 2)]
+        start += n
+    pixels = torch.stack([halves[r][0].pixels[i] for r, i in order])
+    frames = torch.stack([halves[r][0].frame[i] for r, i in order])
+    audio = torch.stack([halves[r][0].condition.audio[i] for r, i in order])
+    draws = torch.stack([halves[r][1][i] for r, i in order])
+    assert torch.equal(pixels, one.pixels) and torch.equal(frames, one.frame) and torch.equal(audio, one.condition.audio)
+    assert torch.equal(draws, one_draws)
+    assert not torch.equal(halves[0][1], one_draws[: len(halves[0][1])])  # not simply the first half of the draw

@@ -23,19 +23,35 @@ class Shard:
     generators of all processes stay in step and the parts together are exactly the draw a single
     process makes (multi-process training, :mod:`adnerf.model.train`).
 
+    A batch of several groups (the rays of several frames in one call) is split group by group:
+    with ``groups``, the sizes of the whole batch's groups in order, each process keeps part
+    ``index`` of every group, and its draw is those parts of the whole draw, in group order.
+
     Attributes:
         generator: The generator every process holds in the same state.
         index: This process's part (its rank).
         count: The number of parts (the world size).
+        groups: The whole batch's group sizes (each divisible by ``count``); empty: one group.
     """
 
     generator: torch.Generator
     index: int
     count: int
+    groups: tuple[int, ...] = ()
 
     @property
     def device(self) -> torch.device:
         return self.generator.device
+
+    def rows(self, n: int) -> torch.Tensor | slice:
+        """This process's rows of the whole batch's draw, for a part of ``n`` rows."""
+        if not self.groups:
+            return slice(self.index * n, (self.index + 1) * n)
+        if sum(self.groups) != n * self.count or any(g % self.count for g in self.groups):
+            raise ValueError(f"a part of {n} rows is not 1/{self.count} of each of the groups {self.groups}")
+        starts = torch.cumsum(torch.tensor((0, *self.groups[:-1])), 0)
+        sizes = torch.tensor(self.groups) // self.count
+        return torch.cat([torch.arange(int(s) + self.index * int(k), int(s) + (self.index + 1) * int(k)) for s, k in zip(starts, sizes)])
 
 
 def uniform(shape: tuple[int, ...] | torch.Size, *, dtype: torch.dtype, device: torch.device | str, generator: "torch.Generator | Shard | None" = None) -> torch.Tensor:
@@ -56,5 +72,5 @@ def uniform(shape: tuple[int, ...] | torch.Size, *, dtype: torch.dtype, device: 
     if isinstance(generator, Shard):
         n = shape[0]
         whole = torch.rand((n * generator.count, *shape[1:]), dtype=dtype, device=generator.device, generator=generator.generator)
-        return whole[generator.index * n : (generator.index + 1) * n].to(device)
+        return whole[generator.rows(n)].to(device)
     return torch.rand(shape, dtype=dtype, device=generator.device, generator=generator).to(device)

@@ -5,7 +5,8 @@ training loop. Each holds the same seeded CPU generator, so all pick the same fr
 same batch of rays; each renders its contiguous ``1/N`` of the batch (:meth:`Ranks.part`) with
 the sampler's random numbers drawn for the whole batch and sliced (:class:`adnerf.rng.Shard`),
 so the processes' generators stay in step and their parts together are exactly what one process
-would draw. Gradients are averaged over the processes before every optimiser step, which is the
+would draw. A step of several frames is split frame by frame (each process renders its part of
+every frame's rays, and the shard keeps those rows of the whole draw). Gradients are averaged over the processes before every optimiser step, which is the
 gradient of the whole batch's mean loss: N processes train the same run one process would, up to
 the order of floating-point sums. Process 0 writes ``run.json``, the log and the checkpoints.
 
@@ -49,9 +50,10 @@ class Ranks:
         n = len(batch) // self.world
         return batch[self.rank * n : (self.rank + 1) * n]
 
-    def shard(self, generator: torch.Generator) -> "torch.Generator | Shard":
-        """``generator`` for draws over a batch split as :meth:`part` splits it."""
-        return generator if self.world == 1 else Shard(generator, self.rank, self.world)
+    def shard(self, generator: torch.Generator, groups: tuple[int, ...] = ()) -> "torch.Generator | Shard":
+        """``generator`` for draws over a batch split as :meth:`part` splits it, or, for a batch of
+        groups of sizes ``groups``, as :meth:`part` splits each group."""
+        return generator if self.world == 1 else Shard(generator, self.rank, self.world, groups)
 
     def barrier(self) -> None:
         if self.world > 1:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Callable, Literal
@@ -40,6 +40,7 @@ from ..compositor import Composite, Layer, over
 from ..metrics import psnr_from_mse
 from ..outputs import check_folder_output, ensure_writable
 from ..renderer import RenderOutput
+from ..rng import Shard
 from .blinks import BLINKING, blinks_in
 from .conditions import FrameCondition
 from .data import (
@@ -126,6 +127,24 @@ def _optimise(parts: list[Part], mask_weight: float, optimizer: torch.optim.Opti
     if ranks.average_gradients([q for group in optimizer.param_groups for q in group["params"]]):
         optimizer.step()
     return tuple(ranks.mean([float(loss.detach()), float(fine_mse.detach())]))  # type: ignore[return-value]
+
+
+@dataclass
+class Batch:
+    """This process's rays of a step, to render in one call (:meth:`Trainer.batch_of`).
+
+    Attributes:
+        frame: The frame, or the frame of each ray ``(R,)`` when the rays come from several.
+        pixels: Flat pixel indices ``(R,)``.
+        condition: The frame's condition, or one per ray (:meth:`FrameCondition.of_rays`).
+        generator: The generator of the sampler's draws for these rays (a :class:`~adnerf.rng.Shard`
+            of the step's generator under several processes).
+    """
+
+    frame: int | torch.Tensor
+    pixels: torch.Tensor
+    condition: FrameCondition
+    generator: "torch.Generator | Shard"
 
 
 NECK_BAND = 0.1
@@ -390,29 +409,31 @@ class Trainer:
                 self.save()
         bar.close()
 
-    def batch_of(self, groups: list[tuple[int, torch.Tensor, FrameCondition]]) -> tuple[int | torch.Tensor, torch.Tensor, FrameCondition]:
+    def batch_of(self, groups: list[tuple[int, torch.Tensor, FrameCondition]]) -> Batch:
         """This process's rays of a step's frames ``(frame, pixels (n,), condition)``, to render in
-        one call: ``(the frame, or the frame of each ray (R,); pixel indices (R,); the condition,
-        per ray for several frames)``.
+        one call (:class:`Batch`).
 
-        Every process drew the same groups and renders its part of each group's rays. One call
-        for several frames is what a GPU wants (a step's time there is mostly launches, not
-        arithmetic); the rays and losses are those of a call per frame.
+        Every process drew the same groups and renders its part of each group's rays, with the
+        random numbers one process would draw for them. One call for several frames is what a GPU
+        wants (a step's time there is mostly launches, not arithmetic); the rays and losses are
+        those of a call per frame.
         """
         if len(groups) == 1:
             frame, pix, cond = groups[0]
-            return frame, self.ranks.part(pix), cond
+            return Batch(frame, self.ranks.part(pix), cond, self.ranks.shard(self.generator))
         parts = [self.ranks.part(pix) for _, pix, _ in groups]
         counts = torch.tensor([len(p) for p in parts], device=self.device)
         which = torch.repeat_interleave(torch.arange(len(groups), device=self.device), counts)
         frames = torch.tensor([frame for frame, _, _ in groups], device=self.device)[which]
-        return frames, torch.cat(parts), FrameCondition.of_rays([cond for _, _, cond in groups], which)
+        generator = self.ranks.shard(self.generator, tuple(len(pix) for _, pix, _ in groups))
+        return Batch(frames, torch.cat(parts), FrameCondition.of_rays([cond for _, _, cond in groups], which), generator)
 
-    def head_part(self, frame: int | torch.Tensor, pix: torch.Tensor, cond: FrameCondition) -> Part:
-        """Render stage-1 rays ``pix`` (this process's; :meth:`batch_of`) of ``frame`` (or of each
-        ray's frame): ``(render, target, head mask, None)`` (the mask holds on every ray)."""
+    def head_part(self, batch: Batch) -> Part:
+        """Render a stage-1 batch (this process's rays; :meth:`batch_of`): ``(render, target, head
+        mask, None)`` (the mask holds on every ray)."""
+        frame, pix, cond = batch.frame, batch.pixels, batch.condition
         with mixed_precision(self.device, self.tcfg.amp):
-            out = self.model.layers["head"].render(self.rays[pix], cond, background=self.plate[pix], jitter=True, generator=self.ranks.shard(self.generator))
+            out = self.model.layers["head"].render(self.rays[pix], cond, background=self.plate[pix], jitter=True, generator=batch.generator)
         self.samples += out.samples_evaluated
         return out, self.head_target(frame, pix), self.is_head[frame, pix], None
 
@@ -460,7 +481,7 @@ class Trainer:
             eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
                 groups.append(eye_batch)
-            return _optimise([self.head_part(*self.batch_of(groups))], tcfg.mask_weight, self.opt_head, self.ranks)
+            return _optimise([self.head_part(self.batch_of(groups))], tcfg.mask_weight, self.opt_head, self.ranks)
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
@@ -492,7 +513,7 @@ class Trainer:
         # The cache's precision from the start, so that a run resumed in stage 2 trains on the same values.
         return Layer(rgb.float(), opacity.float())
 
-    def torso_part(self, frame: int | torch.Tensor, pix: torch.Tensor, cond: FrameCondition, head: Layer, *, jitter: bool = True) -> Part:
+    def torso_part(self, frame: int | torch.Tensor, pix: torch.Tensor, cond: FrameCondition, head: Layer, *, jitter: bool = True, generator: "torch.Generator | Shard | None" = None) -> Part:
         """Render stage-2 rays ``pix`` of ``frame`` (or of each ray's frame, ``(R,)``, under a
         per-ray condition) through the torso with the frozen head ``head`` (the premultiplied
         layer at those pixels) in the model's order.
@@ -508,7 +529,7 @@ class Trainer:
         head_in_front = self.model.config.head_in_front
         background = self.plate[pix] if head_in_front else over(head, Layer.opaque(self.plate[pix])).rgb
         with mixed_precision(self.device, self.tcfg.amp):
-            out = torso.render(self.rays[pix], cond, background=background, jitter=jitter, generator=self.ranks.shard(self.generator))
+            out = torso.render(self.rays[pix], cond, background=background, jitter=jitter, generator=self.ranks.shard(self.generator) if generator is None else generator)
         self.samples += out.samples_evaluated
         if not head_in_front:
             return out, self.frames[frame, pix], self.is_torso[frame, pix], None
@@ -545,8 +566,8 @@ class Trainer:
                 if k == 0:
                     self.maybe_update_occupancy("torso", step, tcfg.torso_iters, cond)
                 groups.append((frame, pix, cond))
-            which, pix, cond = self.batch_of(groups)
-            part = self.torso_part(which, pix, cond, Layer(heads.rgb[which, pix], heads.opacity[which, pix]))
+            b = self.batch_of(groups)
+            part = self.torso_part(b.frame, b.pixels, b.condition, Layer(heads.rgb[b.frame, b.pixels], heads.opacity[b.frame, b.pixels]), generator=b.generator)
             return _optimise([part], tcfg.mask_weight, self.opt_torso, self.ranks)
 
         self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
