@@ -39,6 +39,7 @@ from ..atomic import atomic_path
 from ..compositor import Composite, Layer, over
 from ..metrics import psnr_from_mse
 from ..outputs import check_folder_output, ensure_writable
+from ..pose import HeadPose
 from ..renderer import RenderOutput
 from ..rng import Shard
 from .blinks import BLINKING, blinks_in
@@ -321,6 +322,29 @@ class Trainer:
         idx = torch.randint(pool.numel(), (n,), generator=self.generator).to(pool.device)
         return pool[idx]
 
+    def pick_among(self, pool: torch.Tensor, focus: torch.Tensor, fraction: float, n: int) -> torch.Tensor:
+        """``n`` pixel indices: ``round(fraction * n)`` drawn among ``focus`` (none when it is
+        empty), the rest among ``pool`` (:meth:`pick_rays`)."""
+        n_focus = int(round(fraction * n)) if focus.numel() else 0
+        return torch.cat([self.pick_rays(pool, n - n_focus), self.pick_rays(focus, n_focus)])
+
+    def step_frames(self, layer: str, step: int, iters: int, rays_of: Callable[[int, HeadPose, int], torch.Tensor], code_of: Callable[[int], torch.Tensor]) -> list[tuple[int, torch.Tensor, FrameCondition]]:
+        """A step's ``frames`` training frames, each ``(frame, pixels, condition)``: the frames are
+        drawn first, then each frame's ``rays // frames`` pixels (``rays_of(frame, pose, n)``) and
+        its condition under its audio code (``code_of(frame)``); the layer's occupancy grid is
+        updated under the first frame's condition when due."""
+        frames = [self.pick_frame() for _ in range(self.tcfg.frames)]
+        n = self.tcfg.rays // self.tcfg.frames
+        groups = []
+        for k, frame in enumerate(frames):
+            pose = self.ds.head_pose(frame, device=self.device)
+            pix = rays_of(frame, pose, n)
+            cond = self.condition(frame, code_of(frame), pose)
+            if k == 0:
+                self.maybe_update_occupancy(layer, step, iters, cond)
+            groups.append((frame, pix, cond))
+        return groups
+
     def eye_pixels(self, pose) -> torch.Tensor:  # noqa: ANN001
         """Flat indices of the pixels in squares of side ``EYE_CROP`` units around both eyes (none
         when the head does not read the eye openness, the dataset has no eye points, or the clip
@@ -462,22 +486,13 @@ class Trainer:
         sched = _Schedule(self.opt_head, [tcfg.lr, tcfg.lr_audio], tcfg.head_iters, tcfg.lr_final)
         self.model.train()
 
+        def rays_of(frame: int, pose: HeadPose, n: int) -> torch.Tensor:
+            return self.pick_among(self.head_box_pixels(frame, pose), self.mouth_pixels(pose), tcfg.mouth_rays, n)
+
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
             self.model.set_audio_smoothing(step >= tcfg.att_start * tcfg.head_iters)
-            frames = [self.pick_frame() for _ in range(tcfg.frames)]
-            n = tcfg.rays // tcfg.frames  # rays per frame
-            groups = []
-            for k, frame in enumerate(frames):
-                pose = self.ds.head_pose(frame, device=self.device)
-                candidates = self.head_box_pixels(frame, pose)
-                mouth = self.mouth_pixels(pose)
-                n_mouth = int(round(tcfg.mouth_rays * n)) if mouth.numel() else 0
-                pix = torch.cat([self.pick_rays(candidates, n - n_mouth), self.pick_rays(mouth, n_mouth)])
-                cond = self.condition(frame, self.code(frame), pose)
-                if k == 0:
-                    self.maybe_update_occupancy("head", step, tcfg.head_iters, cond)
-                groups.append((frame, pix, cond))
+            groups = self.step_frames("head", step, tcfg.head_iters, rays_of, self.code)
             eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
                 groups.append(eye_batch)
@@ -552,20 +567,12 @@ class Trainer:
         sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
         self.model.train()
 
+        def rays_of(frame: int, pose: HeadPose, n: int) -> torch.Tensor:
+            return self.pick_among(candidates, torch.nonzero(self.is_torso[frame])[:, 0], tcfg.torso_person_rays, n)
+
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
-            frames = [self.pick_frame() for _ in range(tcfg.frames)]
-            n = tcfg.rays // tcfg.frames  # rays per frame
-            groups = []
-            for k, frame in enumerate(frames):
-                pose = self.ds.head_pose(frame, device=self.device)
-                person = torch.nonzero(self.is_torso[frame])[:, 0]
-                n_person = int(round(tcfg.torso_person_rays * n)) if person.numel() else 0
-                pix = torch.cat([self.pick_rays(candidates, n - n_person), self.pick_rays(person, n_person)])
-                cond = self.condition(frame, codes[frame], pose)
-                if k == 0:
-                    self.maybe_update_occupancy("torso", step, tcfg.torso_iters, cond)
-                groups.append((frame, pix, cond))
+            groups = self.step_frames("torso", step, tcfg.torso_iters, rays_of, lambda frame: codes[frame])
             b = self.batch_of(groups)
             part = self.torso_part(b.frame, b.pixels, b.condition, Layer(heads.rgb[b.frame, b.pixels], heads.opacity[b.frame, b.pixels]), generator=b.generator)
             return _optimise([part], tcfg.mask_weight, self.opt_torso, self.ranks)
