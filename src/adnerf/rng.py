@@ -49,9 +49,12 @@ class Shard:
             return slice(self.index * n, (self.index + 1) * n)
         if sum(self.groups) != n * self.count or any(g % self.count for g in self.groups):
             raise ValueError(f"a part of {n} rows is not 1/{self.count} of each of the groups {self.groups}")
-        starts = torch.cumsum(torch.tensor((0, *self.groups[:-1])), 0)
-        sizes = torch.tensor(self.groups) // self.count
-        return torch.cat([torch.arange(int(s) + self.index * int(k), int(s) + (self.index + 1) * int(k)) for s, k in zip(starts, sizes)])
+        rows, start = [], 0
+        for g in self.groups:
+            k = g // self.count
+            rows.append(torch.arange(start + self.index * k, start + (self.index + 1) * k))
+            start += g
+        return torch.cat(rows)
 
 
 def uniform(shape: tuple[int, ...] | torch.Size, *, dtype: torch.dtype, device: torch.device | str, generator: "torch.Generator | Shard | None" = None) -> torch.Tensor:
