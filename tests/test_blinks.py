@@ -167,6 +167,70 @@ def test_training_gives_each_frame_its_own_eye_openness(scene: Path, tmp_path: P
     assert others >= CFG.head_iters // 2
 
 
+def test_the_eye_enters_as_a_code_that_is_zero_for_open_eyes() -> None:
+    openness = torch.tensor([[1.0], [0.75], [0.5], [0.25], [0.0]], dtype=torch.float64)
+    codes = eye_code(openness)
+    assert codes.shape == (5, SIGNAL_WIDTHS["eye"]) == (5, 2 * EYE_FREQUENCIES)
+    assert torch.equal(codes[0], torch.zeros(2 * EYE_FREQUENCIES, dtype=torch.float64))  # open: no input at all
+    # Fully closed: sin(k pi / 2) and 1 - cos(k pi / 2) for k = 1..4.
+    torch.testing.assert_close(codes[4], torch.tensor([1.0, 0.0, -1.0, 0.0, 1.0, 2.0, 1.0, 0.0], dtype=torch.float64), atol=1e-12, rtol=0)
+    # Each degree of closure its own direction: the four closed-ish codes are independent (one
+    # number scaled would have rank 1).
+    assert torch.linalg.matrix_rank(codes[1:]) == 4
+    pose = HeadPose(torch.eye(3), torch.zeros(3))
+    cond = FrameCondition(torch.arange(3.0), pose, {"eye": torch.tensor([0.25])})
+    torch.testing.assert_close(cond.vector(("audio", "eye"), torch.float32), torch.cat([torch.arange(3.0), eye_code(torch.tensor([0.25]))]))
+
+
+def test_the_head_reads_the_eye_and_render_blinks_on_command(scene: Path, run: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    r, ds = load_run(run), load_dataset(scene)
+    assert r.model.reads_eye and r.model.layers["head"].conditions == ("audio", "eye") and r.model.layers["torso"].conditions == ("audio", "pose")
+    idx = list(ds.meta.test)[:2]
+    plate = ds.background.astype(np.float32) / 255.0
+    opened = render_frames(r, ds.features[idx], ds.poses[idx], plate, eye=np.ones(2, np.float32))
+    shut = render_frames(r, ds.features[idx], ds.poses[idx], plate, eye=np.zeros(2, np.float32))
+    default = render_frames(r, ds.features[idx], ds.poses[idx], plate)
+    assert not np.array_equal(opened.frames, shut.frames) and np.array_equal(opened.frames, default.frames)
+    cond = r.model.condition(torch.zeros(r.model.config.audio_dim), ds.head_pose(0), 0.25)
+    torch.testing.assert_close(cond.vector(r.model.layers["head"].conditions, torch.float32)[-SIGNAL_WIDTHS["eye"] :], eye_code(torch.tensor([0.25])))
+    np.save(tmp_path / "shut.npy", np.zeros(200))
+    audio = str(scene / "audio.wav")
+    assert main(["render", str(run), "--audio", audio, "-o", str(tmp_path / "a.mp4"), "--blink", str(tmp_path / "shut.npy")]) == 0
+    assert main(["render", str(run), "--audio", audio, "-o", str(tmp_path / "b.mp4"), "--blink", "nope.npy"]) == 2
+    assert "--blink nope.npy" in capsys.readouterr().err and not (tmp_path / "b.mp4").exists()
+
+
+def test_runs_without_eyes_cannot_blink_and_old_scenes_still_train(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    data = synthesize(tmp_path / "still", SynthConfig(seconds=1.6, size=32, voice="formant", seed=2, blinks=False))
+    (data / "eye.npy").unlink()  # as a dataset made before blinks
+    ds = load_dataset(data)
+    assert ds.eye is None and "blinks=off" in ds.meta.source
+    run = train(data, tmp_path / "run", config=CFG, progress=False)
+    assert not load_run(run).model.reads_eye
+    np.save(tmp_path / "shut.npy", np.zeros(100))
+    assert main(["render", str(run), "--audio", str(data / "audio.wav"), "-o", str(tmp_path / "a.mp4"), "--blink", str(tmp_path / "shut.npy")]) == 2
+    assert "cannot blink" in capsys.readouterr().err
+    assert main(["render", str(run), "--audio", str(data / "audio.wav"), "-o", str(tmp_path / "b.mp4")]) == 0  # auto: nothing to blink
+
+
+def test_a_clip_that_never_blinks_trains_a_head_without_the_eye(scene: Path, tmp_path: Path) -> None:
+    """Like the shared real clip (openness 0.81-1.23, no blink): the eye value would only tell
+    frames apart, so the head does not read it; one blinking training frame is enough to read it."""
+    data = shutil.copytree(scene, tmp_path / "data")
+    ds = load_dataset(data)
+    eye = np.random.default_rng(3).uniform(0.81, 1.23, SCENE.n_frames).astype(np.float32)
+    np.save(data / "eye.npy", eye)
+    assert not blinks_in(eye, ds.meta.train)
+    run = train(data, tmp_path / "still", config=CFG, progress=False)
+    assert not load_run(run).model.reads_eye
+    eye[ds.meta.test[0]] = 0.1  # a blink among the held-out frames only: still nothing to learn
+    assert not blinks_in(eye, ds.meta.train)
+    eye[ds.meta.train[3]] = 0.74  # one training frame below BLINKING
+    assert blinks_in(eye, ds.meta.train) and not blinks_in(None, ds.meta.train)
+    np.save(data / "eye.npy", eye)
+    assert load_run(train(data, tmp_path / "blinks", config=CFG, progress=False)).model.reads_eye
+
+
 def test_eye_rays_are_drawn_around_both_eyes_and_blinking_frames_more_often(scene: Path, tmp_path: Path) -> None:
     from adnerf.model.blinks import BLINKING
     from adnerf.model.data import EYE_CROP
