@@ -54,12 +54,12 @@ def _conditions(model: TalkingHead) -> list[FrameCondition]:
     return conds
 
 
-def _frames_of_rays(meta: SceneMeta) -> tuple[object, torch.Tensor]:
-    """Every pixel of every frame, as one batch of rays, and the frame of each ray."""
+def _frames_of_rays(meta: SceneMeta) -> tuple[object, object, torch.Tensor]:
+    """One frame's rays (every pixel), the rays of all frames side by side as one batch, and the
+    frame of each ray of that batch."""
     rays = meta.camera().rays().flatten()
     n = rays.origins.shape[0]
-    which = torch.arange(FRAMES).repeat_interleave(n)
-    return rays, which
+    return rays, rays[torch.arange(FRAMES * n) % n], torch.arange(FRAMES).repeat_interleave(n)
 
 
 @pytest.mark.parametrize("layer", ["head", "torso"])
@@ -74,10 +74,9 @@ def test_one_call_for_several_frames_renders_what_a_call_per_frame_does(layer: s
         grid.occupied = torch.rand(grid.occupied.shape, generator=torch.Generator().manual_seed(2)) < 0.5  # half the cells empty
     else:
         lay.occupancy = None
-    rays, which = _frames_of_rays(meta)
-    n = rays.origins.shape[0]
+    rays, batch, which = _frames_of_rays(meta)
     apart = [lay.render(rays, c) for c in conds]
-    together = lay.render(rays[torch.arange(FRAMES * n) % n], FrameCondition.of_rays(conds, which))
+    together = lay.render(batch, FrameCondition.of_rays(conds, which))
     for part in ("coarse", "fine"):
         for key in ("rgb", "opacity", "depth"):
             want = torch.cat([getattr(getattr(o, part), key) for o in apart])
@@ -101,9 +100,7 @@ def test_render_hits_takes_each_rays_condition_through_its_chunks() -> None:
     model, meta = _model()
     conds = _conditions(model)
     head = model.layers["head"]
-    rays, which = _frames_of_rays(meta)
-    n = rays.origins.shape[0]
-    batch = rays[torch.arange(FRAMES * n) % n]
+    rays, batch, which = _frames_of_rays(meta)
     with torch.no_grad():
         hit, got = head.render_hits(batch, FrameCondition.of_rays(conds, which), chunk=37)
         for k, c in enumerate(conds):
@@ -139,7 +136,7 @@ def test_one_part_of_several_frames_is_the_loss_of_a_part_per_frame() -> None:
     model, meta = _model()
     conds = _conditions(model)
     head = model.layers["head"]
-    rays, which = _frames_of_rays(meta)
+    rays, batch, which = _frames_of_rays(meta)
     n = rays.origins.shape[0]
     target = torch.rand(FRAMES * n, 3, generator=torch.Generator().manual_seed(5))
     mask = torch.rand(FRAMES * n, generator=torch.Generator().manual_seed(6)) > 0.5
@@ -147,7 +144,7 @@ def test_one_part_of_several_frames_is_the_loss_of_a_part_per_frame() -> None:
     def step(joined: bool) -> tuple[float, list[torch.Tensor]]:
         opt = torch.optim.SGD(head.parameters(), lr=0.0)  # a step that moves nothing: only the loss and gradients are read
         if joined:
-            parts = [(head.render(rays[torch.arange(FRAMES * n) % n], FrameCondition.of_rays(conds, which)), target, mask, None)]
+            parts = [(head.render(batch, FrameCondition.of_rays(conds, which)), target, mask, None)]
         else:
             parts = [(head.render(rays, conds[k]), target[which == k], mask[which == k], None) for k in range(FRAMES)]
         loss, _ = _optimise(parts, 0.1, opt)
