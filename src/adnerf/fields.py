@@ -50,15 +50,11 @@ class SampleRows:
 
     :class:`RadianceField` folds each row into its conditioned layers' biases once per ray and
     gathers the result per point, rather than carrying ``C`` values per point through the layer
-    (what :meth:`dense` gives, for fields that want the plain per-point condition).
+    (``rows[ray]`` is the plain per-point condition).
     """
 
     rows: Tensor
     ray: Tensor
-
-    def dense(self) -> Tensor:
-        """The condition of each point, ``(..., C)``."""
-        return self.rows[self.ray]
 
 
 @dataclass
