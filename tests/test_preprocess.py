@@ -194,6 +194,22 @@ def test_face_in_too_few_frames_is_refused(scene: Path, tmp_path: Path, monkeypa
     assert not (tmp_path / "out").exists() and not (tmp_path / ".out.preprocess").exists()
 
 
+def test_a_parse_without_background_is_refused(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No pixel labelled background in any frame leaves nothing to make the plate from: a clear
+    error at the parse step (not the plate step's traceback), and nothing left behind."""
+    from adnerf.preprocess.parsing import ClassicalParser
+
+    def all_person(self: ClassicalParser, frames: np.ndarray, progress: object = None) -> np.ndarray:
+        labels = np.full(frames.shape[:3], LABEL_TORSO, np.uint8)
+        labels[:, : frames.shape[1] // 2] = LABEL_HEAD
+        return labels
+
+    monkeypatch.setattr(ClassicalParser, "parse", all_person)
+    with pytest.raises(PreprocessError, match="every pixel of every frame as the person"):
+        preprocess_video(scene / "video.mp4", tmp_path / "out")
+    assert not (tmp_path / "out").exists() and not (tmp_path / ".out.preprocess").exists()
+
+
 def test_face_detector_failures_are_refused_or_counted(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from adnerf.preprocess.landmarks import DlibFaceDetector
 
@@ -258,6 +274,45 @@ def test_person_hull_fills_down_from_the_first_moving_pixel() -> None:
     hull = person_hull(moving, margin=0)
     assert hull[3:, 2].all() and not hull[:3, 2].any()
     assert hull[6:, 4].all() and not hull[:, 0].any()
+
+
+def _close_crop_clip(n: int = 40, size: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """A head too big for its frame: as it sways, its hair crosses the top edge in every column,
+    and the wall shows beside its neck. Returns frames ``(n, size, size, 3)`` uint8 and the
+    person's truth ``(n, size, size)`` bool."""
+    rng = np.random.default_rng(0)
+    wall = (synth_background(size) * 255).astype(np.uint8)
+    grain = rng.normal(0, 25, (size, size, 1))  # moves with the head, so its inside changes too
+    yy, xx = np.mgrid[0:size, 0:size] + 0.5
+    frames, truth = np.repeat(wall[None], n, 0), np.zeros((n, size, size), bool)
+    for i in range(n):
+        shift = round(0.1 * size * math.sin(2 * math.pi * i / n))
+        cx = 0.5 * size + shift
+        skin = np.clip(np.array([205.0, 150.0, 125.0]) + np.roll(grain, shift, 1), 0, 255)
+        hair = np.clip(np.array([90.0, 70.0, 55.0]) + np.roll(grain, shift, 1), 0, 255)
+        head = ((xx - cx) / (0.45 * size)) ** 2 + ((yy - 0.2 * size) / (0.5 * size)) ** 2 <= 1
+        neck = (np.abs(xx - cx) < 0.14 * size) & (yy > 0.5 * size)
+        top = head & (yy < 0.2 * size)
+        frames[i][head | neck] = skin[head | neck]
+        frames[i][top] = hair[top]
+        truth[i] = head | neck
+    return frames, truth
+
+
+def test_classical_parser_finds_the_wall_in_a_close_crop() -> None:
+    """The motion hull (every column below its first moving pixel) covers the whole frame here,
+    which left GrabCut no background seed: every pixel of every frame became person. Seeded by
+    motion instead, the wall beside the neck is background and the head and neck are person."""
+    from adnerf.preprocess.parsing import ClassicalParser
+
+    frames, truth = _close_crop_clip()
+    moving = (np.abs(frames.astype(int) - np.median(frames, 0)).sum(-1) > 30).mean(0) > 0.02
+    assert person_hull(moving, ClassicalParser.hull_margin).mean() > 0.98  # the case the fallback is for
+    person = ClassicalParser().parse(frames) > 0
+    wall_found = (~person & ~truth).sum((1, 2)) / (~truth).sum((1, 2))
+    person_found = (person & truth).sum((1, 2)) / truth.sum((1, 2))
+    assert wall_found.min() > 0.9, wall_found.min()
+    assert person_found.min() > 0.95, person_found.min()
 
 
 def test_plate_is_the_median_of_background_and_inpaints_the_rest() -> None:

@@ -307,7 +307,9 @@ class ClassicalParser:
        differ from it by more than ``motion_threshold`` (Lab units) in some frames moved, and the
        columns below the first moving pixel form the *person hull* (:func:`person_hull`).
     2. **GrabCut, pass 1**: colour models of person and background are fitted on a few frames with
-       the hull as "probably person" and everything else as background, then every frame is cut
+       the hull as "probably person" and everything else as background (when the hull covers
+       nearly the whole frame, as in a close crop: the moving pixels as "probably person" and the
+       still ones as "probably background"), then every frame is cut
        with the models frozen.
     3. **Plate and pass 2**: a background plate is the per-pixel median of the frames where the
        pixel was background; where the plate is known, a frame's difference from it gives sure
@@ -322,6 +324,8 @@ class ClassicalParser:
         plate_high: Lab distance from the plate above which a pixel is surely person.
         hull_margin: Pixels of margin around the person hull.
         max_stat_frames: Frames used for the temporal statistics.
+        min_outside: Fraction of the frame the hull must leave outside to seed the background
+            (else pass 1 is seeded by motion alone).
     """
 
     motion_threshold: float = 20.0
@@ -329,6 +333,7 @@ class ClassicalParser:
     plate_high: float = 25.0
     hull_margin: int = 4
     max_stat_frames: int = 80
+    min_outside: float = 0.02
     name: str = "classical"
     cuts_at_jaw: bool = False  # cuts at the neck's row; the pipeline re-splits with landmarks
     finds_clothes: bool = False  # finds the person by motion; the pipeline completes the torso
@@ -346,7 +351,7 @@ class ClassicalParser:
         moving = cv2.morphologyEx(moving.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
         hull = person_hull(moving, self.hull_margin)
         total = 2 * n
-        person = grabcut_clip(frames, [self._hull_seeds(hull)] * n, stat, progress, 0, total)
+        person = grabcut_clip(frames, [self._first_seeds(hull, moving)] * n, stat, progress, 0, total)
         plate, seen = self._plate(frames, person)
         plate_lab = _lab(plate[None])[0]
         seeds = []
@@ -364,6 +369,16 @@ class ClassicalParser:
             sil = _fill_holes(_largest_component(person[i]))
             labels[i], _ = split_head_torso(sil)
         return labels
+
+    def _first_seeds(self, hull: np.ndarray, moving: np.ndarray) -> np.ndarray:
+        """Pass 1's GrabCut seeds ``(H, W)`` uint8: the hull probably person and the rest
+        background; when the hull leaves less than ``min_outside`` of the frame (a close crop whose
+        hair sweeps the top edge across nearly every column), the pixels that moved probably
+        person and the rest probably background, so the colour models decide (else no pixel
+        would seed the background and the whole frame would be person)."""
+        if (~hull).mean() >= self.min_outside:
+            return self._hull_seeds(hull)
+        return np.where(moving, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
 
     def _hull_seeds(self, hull: np.ndarray) -> np.ndarray:
         m = np.full(hull.shape, cv2.GC_BGD, np.uint8)

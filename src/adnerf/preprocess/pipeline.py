@@ -308,6 +308,11 @@ def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) ->
         raise PreprocessError(str(exc)) from exc
     labels = parser.parse(frames, progress=lambda d, t: bar("parse", d, t))
     n, h, w = labels.shape
+    if not (labels == 0).any():  # the plate is made of background pixels; there is none
+        raise PreprocessError(
+            f"{video}: the parser ({parser.name}) labelled every pixel of every frame as the person, so no background plate can be made; "
+            "frame the clip wider (some wall beside the head), or try --parser mediapipe"
+        )
     head_area = (labels == LABEL_HEAD).mean((1, 2))
     skin = np.array([_skin_fraction(frames[i], labels[i] == LABEL_HEAD) for i in range(n)])
     face = (head_area > 0.01) & (skin > 0.15)
