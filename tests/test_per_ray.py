@@ -190,6 +190,35 @@ def test_a_field_folds_each_rays_condition_as_the_per_point_condition_reads(conf
         field(points, dirs, SampleRows(rows, ray[:2]))
 
 
+def test_per_ray_gradients_are_the_same_every_time() -> None:
+    """A step's rays share a few frames' codes, so the backward of the per-ray gathers (frame ->
+    ray in ``of_rays``, ray -> point in the field's fold) sums many gradients into each row.
+    Indexing's backward adds them atomically across CPU threads, in whatever order the threads
+    run: the same step gave gradients that differed in the last bits from one run to the next.
+    The gathers sum in a fixed order, so repeating the backward gives identical gradients."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)  # the adds race only with more than one thread
+    try:
+        torch.manual_seed(0)
+        field = RadianceField(FieldConfig.from_dict({**fast_config(64).to_dict(), "depth": 2, "width": 64}))
+        codes = torch.randn(2, 64, requires_grad=True)  # the audio code's width: the gathers are large enough to run on threads
+        pose = HeadPose(torch.eye(3), torch.zeros(3))
+        which = torch.tensor([0] * 1024 + [1] * 256)  # a frame's rays and an eye batch's
+        points = torch.rand(1280, 16, 3) - 0.5
+        dirs = torch.nn.functional.normalize(torch.randn(1280, 16, 3), dim=-1)
+        ray = torch.randint(0, 1280, (1280, 16))  # each point's ray, in any order (the threads' shares overlap)
+        grads = []
+        for _ in range(12):
+            cond = FrameCondition.of_rays([FrameCondition(codes[0], pose), FrameCondition(codes[1], pose)], which)
+            out = field(points, dirs, SampleRows(cond.audio, ray))
+            grads.append(torch.autograd.grad(out.rgb.sum() + out.density.sum(), [codes, *field.parameters()]))
+        assert float(grads[0][0].abs().max()) > 0
+        for other in grads[1:]:
+            assert all(torch.equal(g, h) for g, h in zip(grads[0], other))
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_processes_split_each_frames_rays_and_draw_what_one_process_draws(tmp_path: Path) -> None:
     """Under two processes each renders its half of every frame's rays of a step, with the random
     numbers one process draws for those rays: together they are the one-process batch."""

@@ -237,7 +237,11 @@ class RadianceField(nn.Module):
                 k = cfg.cond_dim
                 w_x, w_c = layer.weight[:, :-k], layer.weight[:, -k:]
                 if isinstance(shared, SampleRows):
-                    h = F.relu(F.linear(h, w_x) + F.linear(shared.rows, w_c, layer.bias)[shared.ray])
+                    # index_select, not [ray]: its backward sums the points' gradients into their
+                    # rows in a fixed order (indexing's backward adds them atomically across CPU
+                    # threads, so a run's gradients would differ in the last bits run to run).
+                    per_ray = F.linear(shared.rows, w_c, layer.bias)
+                    h = F.relu(F.linear(h, w_x) + per_ray.index_select(0, shared.ray.reshape(-1)).reshape(*shared.ray.shape, -1))
                 else:
                     h = F.relu(F.linear(h, w_x, layer.bias + w_c @ shared))
         raw_density = self.density_head(h)[..., 0] + cfg.density_bias

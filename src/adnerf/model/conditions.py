@@ -95,7 +95,9 @@ class FrameCondition:
                 raise ValueError(f"the frames carry different signals: {sorted(keys)} and {sorted(c.extra)}")
 
         def pick(values: list[Tensor]) -> Tensor:
-            return torch.stack(values)[index]
+            # index_select: its backward sums each frame's rays in a fixed order (indexing's adds
+            # them atomically across CPU threads: gradients that differ run to run).
+            return torch.stack(values).index_select(0, index)
 
         pose = HeadPose(pick([c.pose.R for c in frames]), pick([c.pose.t for c in frames]))
         return FrameCondition(pick([c.audio for c in frames]), pose, {k: pick([c.extra[k] for c in frames]) for k in sorted(keys)})
