@@ -149,7 +149,7 @@ def test_training_gives_each_frame_its_own_eye_openness(scene: Path, tmp_path: P
 
     monkeypatch.setattr(RadianceLayer, "render", spy)
     # An audio code that names its frame, to see whose speech each batch is rendered under.
-    monkeypatch.setattr(Trainer, "code", lambda self, frame: torch.full((self.model.config.audio_dim,), float(frame)))
+    monkeypatch.setattr(Trainer, "codes", lambda self, frames: torch.tensor(frames, dtype=torch.float32)[:, None].expand(-1, self.model.config.audio_dim))
     train(data, tmp_path / "run", config=CFG, progress=False)
     # One render an iteration: the frame's rays, then the eye batch's (a quarter as many).
     assert len(seen) == CFG.head_iters

@@ -71,10 +71,12 @@ def test_frames_per_step_splits_the_rays_over_frames_each_under_its_own_speech(t
     def naming_codes(self: TalkingHead, windows: torch.Tensor, frames=None, batch: int = 512) -> torch.Tensor:  # noqa: ANN001
         """Audio codes that name their frame, to see whose speech each ray is rendered under."""
         index = torch.arange(windows.shape[0]) if frames is None else torch.as_tensor(frames).reshape(-1)
+        code_calls.append(None if frames is None else len(index))
         return index.float()[:, None].expand(-1, self.config.audio_dim)
 
     camera_dirs = ds.meta.camera().rays().flatten().directions.float()
     pixels: list[torch.Tensor] = []
+    code_calls: list[int | None] = []  # frames per audio network call; None: every frame (stage 2's start)
     monkeypatch.setattr(RadianceLayer, "render", spy)
     monkeypatch.setattr(TalkingHead, "frame_codes", naming_codes)
     monkeypatch.setattr(train_module, "_optimise", optimise_spy)
@@ -87,6 +89,9 @@ def test_frames_per_step_splits_the_rays_over_frames_each_under_its_own_speech(t
             assert speech == poses and set(poses) <= set(ds.meta.train), stage  # each ray under its own frame's speech and pose
             assert len(poses) == 64 and all(len(set(poses[k : k + 16])) == 1 for k in range(0, 64, 16)), stage  # 16 rays a frame
         assert len({f for _, poses in renders for f in poses}) > iters, stage  # not one frame a step
+    # One audio network pass a head step for its four frames, not one a frame; stage 2 encodes
+    # every frame once at its start.
+    assert code_calls[: cfg.head_iters + 1] == [4] * cfg.head_iters + [None], code_calls
     # Each ray's target is its own frame's pixel (stage 1: the plate off the head).
     frames = torch.as_tensor(ds.frames).reshape(len(ds.frames), -1, 3).float() / 255
     plate = torch.as_tensor(ds.background).reshape(-1, 3).float() / 255

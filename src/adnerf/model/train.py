@@ -227,6 +227,8 @@ class Trainer:
         # Frames that teach the eye condition: the blinking ones (drawn more often, blink_frames).
         self.blinking = self.train_frames[torch.as_tensor(ds.eye)[self.train_frames] < BLINKING] if self.eye is not None else self.train_frames[:0]
         self.pixel_index = torch.arange(ds.meta.width * ds.meta.height, device=device)
+        # Every pixel's centre (column, row), for the squares around the mouth and the eyes.
+        self.pixel_centres = (self.pixel_index % ds.meta.width + 0.5, self.pixel_index // ds.meta.width + 0.5)
         # Which pixels' rays cross the head box, per frame: made on a frame's first draw and kept
         # (crossing every pixel's ray took 4-10 ms of a 70 ms step at 256 px on 2 CPU cores; kept: 0.1 ms).
         self.in_head_box = torch.zeros(ds.meta.n_frames, ds.meta.width * ds.meta.height, dtype=torch.bool, device=device)
@@ -328,21 +330,19 @@ class Trainer:
         n_focus = int(round(fraction * n)) if focus.numel() else 0
         return torch.cat([self.pick_rays(pool, n - n_focus), self.pick_rays(focus, n_focus)])
 
-    def step_frames(self, layer: str, step: int, iters: int, rays_of: Callable[[int, HeadPose, int], torch.Tensor], code_of: Callable[[int], torch.Tensor]) -> list[tuple[int, torch.Tensor, FrameCondition]]:
+    def step_frames(self, layer: str, step: int, iters: int, rays_of: Callable[[int, HeadPose, int], torch.Tensor], codes_of: Callable[[list[int]], torch.Tensor]) -> list[tuple[int, torch.Tensor, FrameCondition]]:
         """A step's ``frames`` training frames, each ``(frame, pixels, condition)``: the frames are
-        drawn first, then each frame's ``rays // frames`` pixels (``rays_of(frame, pose, n)``) and
-        its condition under its audio code (``code_of(frame)``); the layer's occupancy grid is
-        updated under the first frame's condition when due."""
+        drawn first, then each frame's ``rays // frames`` pixels (``rays_of(frame, pose, n)``);
+        then their audio codes in one call (``codes_of(frames) -> (frames, audio_dim)``: one
+        audio network pass for the step, not one per frame) make each frame's condition, and the
+        layer's occupancy grid is updated under the first frame's condition when due."""
         frames = [self.pick_frame() for _ in range(self.tcfg.frames)]
         n = self.tcfg.rays // self.tcfg.frames
-        groups = []
-        for k, frame in enumerate(frames):
-            pose = self.ds.head_pose(frame, device=self.device)
-            pix = rays_of(frame, pose, n)
-            cond = self.condition(frame, code_of(frame), pose)
-            if k == 0:
-                self.maybe_update_occupancy(layer, step, iters, cond)
-            groups.append((frame, pix, cond))
+        poses = [self.ds.head_pose(frame, device=self.device) for frame in frames]
+        pixels = [rays_of(frame, pose, n) for frame, pose in zip(frames, poses)]
+        codes = codes_of(frames)
+        groups = [(frame, pix, self.condition(frame, code, pose)) for frame, pix, code, pose in zip(frames, pixels, codes, poses)]
+        self.maybe_update_occupancy(layer, step, iters, groups[0][2])
         return groups
 
     def eye_pixels(self, pose) -> torch.Tensor:  # noqa: ANN001
@@ -352,8 +352,7 @@ class Trainer:
         if self.eye is None or self.ds.meta.eyes is None or not self.blinking.numel():
             return self.pixel_index[:0]
         uv, depth = self.ds.meta.eyes_in_image(pose)
-        W = self.camera.width
-        cols, rows = self.pixel_index % W + 0.5, self.pixel_index // W + 0.5
+        cols, rows = self.pixel_centres
         inside = torch.zeros_like(self.pixel_index, dtype=torch.bool)
         for k in range(2):
             half = 0.5 * EYE_CROP * self.ds.meta.intrinsics[0] / float(depth[k])
@@ -373,15 +372,17 @@ class Trainer:
         """Flat indices of the pixels in the square of side ``MOUTH_CROP`` units around the mouth."""
         uv, depth = self.ds.meta.mouth_in_image(pose)
         half = 0.5 * MOUTH_CROP * self.ds.meta.intrinsics[0] / float(depth)
-        W = self.camera.width
-        cols = self.pixel_index % W + 0.5
-        rows = self.pixel_index // W + 0.5
+        cols, rows = self.pixel_centres
         inside = ((cols - uv[0]).abs() <= half) & ((rows - uv[1]).abs() <= half)
         return self.pixel_index[inside]
 
     def code(self, frame: int) -> torch.Tensor:
         """Frame ``frame``'s audio code ``(audio_dim,)`` (:meth:`TalkingHead.frame_codes`)."""
-        return self.model.frame_codes(self.windows, [frame])[0]
+        return self.codes([frame])[0]
+
+    def codes(self, frames: list[int]) -> torch.Tensor:
+        """The audio codes ``(len(frames), audio_dim)`` of ``frames``, in one audio network pass."""
+        return self.model.frame_codes(self.windows, frames)
 
     def condition(self, frame: int, code: torch.Tensor, pose) -> FrameCondition:  # noqa: ANN001
         """Frame ``frame``'s condition: its audio code, head pose and (when the head reads it) eye openness."""
@@ -492,7 +493,7 @@ class Trainer:
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
             self.model.set_audio_smoothing(step >= tcfg.att_start * tcfg.head_iters)
-            groups = self.step_frames("head", step, tcfg.head_iters, rays_of, self.code)
+            groups = self.step_frames("head", step, tcfg.head_iters, rays_of, self.codes)
             eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
                 groups.append(eye_batch)
@@ -572,7 +573,7 @@ class Trainer:
 
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
-            groups = self.step_frames("torso", step, tcfg.torso_iters, rays_of, lambda frame: codes[frame])
+            groups = self.step_frames("torso", step, tcfg.torso_iters, rays_of, lambda frames: codes[frames])
             b = self.batch_of(groups)
             part = self.torso_part(b.frame, b.pixels, b.condition, Layer(heads.rgb[b.frame, b.pixels], heads.opacity[b.frame, b.pixels]), generator=b.generator)
             return _optimise([part], tcfg.mask_weight, self.opt_torso, self.ranks)
