@@ -106,7 +106,8 @@ class TrainConfig:
         1.73, 1.74 px against 1.77, 1.80). Each part was needed: the same rays from one frame a step lost 3.9 dB
         (an H200), and from four frames at the unscaled learning rates 0.8 dB (the torso, taking
         four times fewer Adam steps, lagged most). ``k = 8`` kept the head (30.48 dB on its
-        label) but lost 2.2 dB on the full frame: 444 torso steps were too few; ``k = 2`` is not
+        label) but lost 2.2 dB on the full frame: 444 torso steps were too few (that head with the
+        torso scaled by 4 scored 30.62 / 27.32 / 30.61 dB); ``k = 2`` is not
         measured on the real clip. The defaults stay unscaled on every device (``adnerf train --scale K``).
 
         Raises:
