@@ -344,11 +344,7 @@ class ClassicalParser:
         cv2.setRNGSeed(0)
         n, h, w, _ = frames.shape
         stat = np.linspace(0, n - 1, min(n, self.max_stat_frames)).round().astype(int)
-        lab = _lab(frames[stat])
-        median = np.median(lab, axis=0)
-        diff = np.linalg.norm(lab - median, axis=-1)
-        moving = (diff > self.motion_threshold).mean(0) > 0.02
-        moving = cv2.morphologyEx(moving.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+        moving = self.moving_pixels(frames[stat])
         hull = person_hull(moving, self.hull_margin)
         total = 2 * n
         person = grabcut_clip(frames, [self._first_seeds(hull, moving)] * n, stat, progress, 0, total)
@@ -369,6 +365,15 @@ class ClassicalParser:
             sil = _fill_holes(_largest_component(person[i]))
             labels[i], _ = split_head_torso(sil)
         return labels
+
+    def moving_pixels(self, frames: np.ndarray) -> np.ndarray:
+        """``(H, W)`` bool: the pixels that differ from the frames' per-pixel median by more than
+        ``motion_threshold`` (Lab) in more than 2% of ``frames`` ``(N, H, W, 3)`` uint8 RGB,
+        cleared of specks by a 3x3 opening."""
+        lab = _lab(frames)
+        diff = np.linalg.norm(lab - np.median(lab, axis=0), axis=-1)
+        moving = (diff > self.motion_threshold).mean(0) > 0.02
+        return cv2.morphologyEx(moving.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
 
     def _first_seeds(self, hull: np.ndarray, moving: np.ndarray) -> np.ndarray:
         """Pass 1's GrabCut seeds ``(H, W)`` uint8: the hull probably person and the rest
