@@ -12,7 +12,13 @@ import numpy as np
 import pytest
 
 from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
-from adnerf.preprocess.mediapipe_parser import MESH_CHEEKS, MESH_LOWER_JAW, MediapipeParser, mesh_jaw, split_at_jaw
+from adnerf.preprocess.mediapipe_parser import (
+    MESH_CHEEKS,
+    MESH_LOWER_JAW,
+    MediapipeParser,
+    mesh_jaw,
+    split_at_jaw,
+)
 from adnerf.preprocess.parsers import make_parser
 
 

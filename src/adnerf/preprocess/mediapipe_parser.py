@@ -30,7 +30,13 @@ from typing import Callable
 
 import numpy as np
 
-from .parsing import JAW_MARGIN, _fill_holes, _largest_component, split_at_jaw, split_head_torso
+from .parsing import (
+    JAW_MARGIN,
+    _fill_holes,
+    _largest_component,
+    split_at_jaw,
+    split_head_torso,
+)
 
 __all__ = ["MEDIAPIPE_INSTALL", "MESH_CHEEKS", "MESH_LOWER_JAW", "MediapipeParser", "split_at_jaw", "import_mediapipe", "mesh_jaw"]
 
