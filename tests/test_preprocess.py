@@ -87,7 +87,9 @@ def test_preprocess_recovers_the_synthetic_truth(preprocessed: Path, scene: Path
     assert report["face_clothes"]["frames"] == 75 and report["face_clothes"]["added_fraction"] > 0
 
 
-def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path) -> None:
+def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from adnerf.preprocess import pipeline
+
     out = tmp_path / "data"
     cfg = PreprocessConfig(focal=1.33 * 96)
     seen: list[str] = []
@@ -105,6 +107,13 @@ def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path) -> None:
     preprocess_video(scene / "video.mp4", out, cfg, progress=lambda s, d, t: seen.append(s))
     assert {"decode (done before)", "features (done before)", "parse (done before)", "pose (done before)"} <= set(seen)
     assert "plate" in seen and out.is_dir()
+    # Interrupted again, and resumed by changed code (an upgrade): every step is made again.
+    with pytest.raises(KeyboardInterrupt):
+        preprocess_video(scene / "video.mp4", tmp_path / "upgraded", cfg, progress=crash_at_plate)
+    monkeypatch.setattr(pipeline, "code_fingerprint", lambda: "another version")
+    seen.clear()
+    preprocess_video(scene / "video.mp4", tmp_path / "upgraded", cfg, progress=lambda s, d, t: seen.append(s))
+    assert not any("done before" in step for step in seen) and {"decode", "features", "parse", "plate"} <= set(seen)
     # A changed setting re-runs its step and the ones after it, not the ones before.
     seen.clear()
     report = preprocess_video(scene / "video.mp4", tmp_path / "again", PreprocessConfig(focal=1.33 * 96, test_fraction=0.2, face="none"), progress=lambda s, d, t: seen.append(s))

@@ -174,8 +174,27 @@ _STEP_KEYS = {
 }
 
 
+def code_fingerprint() -> str:
+    """A hash of adnerf's own source files: the code that makes a step's outputs.
+
+    Part of every step's key in the work folder, so that a run resumed after adnerf changed (an
+    upgrade that fixes a step, an edit) makes every step again instead of reading outputs the
+    old code made.
+    """
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 class _Work:
-    """The work folder: step outputs plus ``steps.json`` (per step: settings key and seconds)."""
+    """The work folder: step outputs plus ``steps.json`` (per step: settings key and seconds).
+
+    A step's key covers the video (path, size, modification time), the settings it and the steps
+    before it read, and adnerf's code (:func:`code_fingerprint`).
+    """
 
     def __init__(self, folder: Path, video: Path, config: PreprocessConfig) -> None:
         self.folder = folder
@@ -183,7 +202,7 @@ class _Work:
         self.record_path = folder / "steps.json"
         self.record = json.loads(self.record_path.read_text()) if self.record_path.exists() else {}
         stat = video.stat()
-        base = f"{video.resolve()}|{stat.st_size}|{stat.st_mtime_ns}"
+        base = f"{video.resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{code_fingerprint()}"
         self.keys = {}
         for step in STEPS:
             base += "|" + json.dumps({k: getattr(config, k) for k in _STEP_KEYS[step]}, sort_keys=True)
