@@ -608,7 +608,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--stage", choices=("head", "torso", "all"), default="all", help="head (stage 1), torso (stage 2; needs a finished head stage and --resume) or all")
     tr.add_argument("--iters", type=_count, default=None, help="iterations of the stage, >= 0 (with all: head; the torso gets half); with --resume, trains the run longer")
     tr.add_argument("--amp", choices=("auto", "bf16", "off"), default=None, help="mixed precision of the fields (default auto: bfloat16 on CUDA, off on CPU)")
-    tr.add_argument("--scale", type=_number(int, 1, 64), default=1, help="train the schedule (after --config and --iters) in K times fewer steps of K times the rays, drawn from K times the frames, with the learning rates times sqrt(K) (for GPUs, where a larger step costs little more; on the real clip K=4 came within 0.3 dB of the held-out PSNR); a new run only")
+    tr.add_argument("--scale", type=_number(int, 1, 64), default=1, help="train the schedule (after --config and --iters) in K times fewer steps of K times the rays, drawn from K times the frames, with the learning rates times sqrt(K) (for GPUs, where a larger step costs little more; on the real clip K=4 came within 0.3 dB of the held-out PSNR, K=8 lost 2.2 dB: too few torso steps); a new run only")
     tr.add_argument("--device", default="cpu", help="cpu or cuda")
     tr.add_argument("--config", default=None, help="JSON file of TrainConfig fields (e.g. {\"rays\": 2048, \"preset\": \"paper\"}); with --resume only head_iters, torso_iters, amp, checkpoint_every and log_every may differ from the run's")
     tr.add_argument("--resume", action="store_true", help="continue from the run's checkpoint, with its stored config, on the same dataset")
