@@ -107,7 +107,7 @@ class TrainConfig:
         (an H200), and from four frames at the unscaled learning rates 0.8 dB (the torso, taking
         four times fewer Adam steps, lagged most). ``k = 8`` kept the head (30.48 dB on its
         label) but lost 2.2 dB on the full frame: 444 torso steps were too few (that head with the
-        torso scaled by 4 scored 30.62 / 27.32 / 30.61 dB); ``k = 2`` is not
+        torso scaled by 4 scored 30.62 / 27.32 / 30.61 and 30.27 / 26.84 / 30.60 dB, seeds 0 and 1); ``k = 2`` is not
         measured on the real clip. The defaults stay unscaled on every device (``adnerf train --scale K``).
 
         Raises:
