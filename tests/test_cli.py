@@ -36,3 +36,20 @@ def test_bench_features_json(capsys) -> None:
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [r["kind"] for r in rows] == ["logmel", "phonemes"]
     assert all(r["realtime_factor"] > 0 and r["audio_seconds"] == 2.0 for r in rows)
+
+
+def test_demo_scale_trains_the_scaled_schedule(monkeypatch, tmp_path, capsys) -> None:
+    from adnerf.commands import demo
+
+    seen = []
+
+    def fake_run_demo(out_dir, *, device, train_config, **_):
+        seen.append(train_config)
+        return dict.fromkeys(("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "train_seconds", "render_fps", "total_seconds"), 0.0)
+
+    monkeypatch.setattr(demo, "run_demo", fake_run_demo)
+    assert main(["demo", "-o", str(tmp_path / "d"), "--scale", "4"]) == 0
+    assert main(["demo", "-o", str(tmp_path / "e")]) == 0
+    scaled, plain = seen
+    assert plain == demo.DEMO_TRAIN
+    assert (scaled.rays, scaled.frames, scaled.head_iters, scaled.torso_iters) == (4 * plain.rays, 4 * plain.frames, plain.head_iters // 4, plain.torso_iters // 4)

@@ -8,6 +8,7 @@ checkpoint that does not load across devices.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -72,13 +73,15 @@ def test_rendering_an_analytic_sphere_matches_the_cpu(device: torch.device) -> N
     torch.testing.assert_close(render(device).cpu(), render(torch.device("cpu")), rtol=1e-9, atol=1e-9)
 
 
-def test_training_resumes_on_the_device_and_runs_render_across_devices(tiny: Path, tmp_path: Path, device: torch.device) -> None:
+@pytest.mark.parametrize("frames", [1, 4])
+def test_training_resumes_on_the_device_and_runs_render_across_devices(tiny: Path, tmp_path: Path, device: torch.device, frames: int) -> None:
     """Train on the device with a kill and a resume (the checkpointed CPU generator state must
     load there), then render the run on the CPU and on the device: the same frames (bfloat16 on
-    CUDA allows a small difference)."""
+    CUDA allows a small difference). With ``frames=4`` each step renders four frames' rays in one
+    call, each under its own condition (``--scale``'s path: per-ray gathers of codes and poses)."""
     dev = device.type
     root = tmp_path / "run"
-    train(tiny, root, config=CFG, device=dev, progress=False, max_steps=6)
+    train(tiny, root, config=replace(CFG, frames=frames), device=dev, progress=False, max_steps=6)
     train(tiny, root, device=dev, progress=False, resume=True)
     ckpt = torch.load(root / "checkpoint.pt", map_location="cpu", weights_only=False)
     assert (ckpt["head_step"], ckpt["torso_step"]) == (8, 4)

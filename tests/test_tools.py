@@ -32,5 +32,5 @@ def test_gpu_check_steps_run_on_the_cpu(tmp_path: Path) -> None:
         assert "error" not in doc[step], (step, doc[step])
     assert doc["render"]["head_torso_chunk262144_fps"] > 0 and doc["render"]["head_chunk262144_fps"] > 0
     assert [(row["rays"], row["frames"], row["adam"]) for row in doc["steps"]["rows"]] == [(32, 1, "trainer"), (64, 1, "trainer"), (64, 2, "trainer"), (32, 1, "foreach")]
-    real = doc["real"]
+    real = doc["real"]["run"]
     assert real["schedule"] == {"rays": 1024, "frames": 1, "head_iters": 2, "torso_iters": 1} and real["frames"] > 0 and real["psnr"] > 0

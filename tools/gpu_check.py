@@ -9,7 +9,8 @@ Steps, each timed, each written to the JSON as soon as it ends (so a run stopped
 what it measured), each with its own time limit:
 
 1. ``tests``: the device tests on CUDA (``pytest --device cuda tests/test_devices.py``).
-2. ``demo``: ``adnerf demo --device cuda``: wall time, training time and the demo's metrics.
+2. ``demo``: ``adnerf demo --device cuda --scale K`` (``--demo-scale K``, default 1): wall time,
+   training time and the demo's metrics.
 3. ``render``: frames per second of the demo's trained model at 450x450 (head and torso, and head
    alone), steady state, in whole-frame batches of 262144 rays (the GPU default of
    :func:`adnerf.model.talking_head.render_chunk`).
@@ -103,8 +104,8 @@ def _demo_result(folder: Path, code: int, out: str, seconds: float) -> dict:
 
 def step_demo(args: argparse.Namespace) -> dict:
     folder = Path(args.work) / "demo"
-    code, out, seconds = _run([sys.executable, "-m", "adnerf.cli", "demo", "-o", str(folder), "--device", args.device], args.demo_limit)
-    return _demo_result(folder, code, out, seconds)
+    code, out, seconds = _run([sys.executable, "-m", "adnerf.cli", "demo", "-o", str(folder), "--device", args.device, "--scale", str(args.demo_scale)], args.demo_limit)
+    return {"scale": args.demo_scale, **_demo_result(folder, code, out, seconds)}
 
 
 def step_render(args: argparse.Namespace) -> dict:
@@ -205,22 +206,32 @@ def step_demo_scaled(args: argparse.Namespace) -> dict:
 def step_real(args: argparse.Namespace) -> dict:
     if not args.real:
         return {"skipped": "no --real dataset"}
+    return {Path(data).name if len(args.real) > 1 else "run": _real_run(args, data, i) for i, data in enumerate(args.real)}
+
+
+def _real_run(args: argparse.Namespace, data: str, index: int) -> dict:
+    """One ``--real`` dataset trained on the device and measured on its held-out frames."""
+    import torch
+
     from adnerf.evaluation.evaluate import evaluate_run
     from adnerf.model.data import load_dataset
     from adnerf.model.train import TrainConfig, load_run, train
 
-    import torch
-
     head, torso = args.real_iters
     tcfg = TrainConfig(head_iters=head, torso_iters=torso).scaled(args.real_scale)
-    run_dir = Path(args.work) / "real_run"
+    run_dir = Path(args.work) / ("real_run" if index == 0 else f"real_run{index}")
     t0 = time.perf_counter()
-    train(args.real, run_dir, config=tcfg, device=args.device, progress=False)
+    try:
+        train(data, run_dir, config=tcfg, device=args.device, progress=False)
+    except Exception as exc:  # one dataset's failure leaves the next one its turn
+        return {"data": data, "error": f"{type(exc).__name__}: {exc}"}
     seconds = time.perf_counter() - t0
     elapsed = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["elapsed"]  # seconds in each stage's loop
-    metrics, _ = evaluate_run(load_run(run_dir, args.device), load_dataset(args.real), "test", landmarks=False)
+    ds = load_dataset(data)
+    metrics, _ = evaluate_run(load_run(run_dir, args.device), ds, "test", landmarks=False)
     keep = ("frames", "psnr", "ssim", "psnr_mouth", "ssim_mouth", "psnr_head", "ssim_head", "render_fps")
-    return {"schedule": {"rays": tcfg.rays, "frames": tcfg.frames, "head_iters": tcfg.head_iters, "torso_iters": tcfg.torso_iters}, "train_wall_seconds": seconds, "loop_seconds": elapsed, "run": str(run_dir), **{k: metrics.get(k) for k in keep}}
+    schedule = {"rays": tcfg.rays, "frames": tcfg.frames, "head_iters": tcfg.head_iters, "torso_iters": tcfg.torso_iters}
+    return {"data": data, "size": [ds.meta.width, ds.meta.height], "schedule": schedule, "train_wall_seconds": seconds, "loop_seconds": elapsed, "run": str(run_dir), **{k: metrics.get(k) for k in keep}}
 
 
 def step_bench_render(args: argparse.Namespace) -> dict:
@@ -248,9 +259,10 @@ def main() -> int:
     parser.add_argument("--fields-configs", default="paper,fast", help="configurations of the fields bench (default paper,fast)")
     parser.add_argument("--steps-rays", default=(1024, 2048, 4096, 8192), type=_ints, help="rays per iteration of the steps step (default 1024,2048,4096,8192)")
     parser.add_argument("--steps-counts", default=(60, 60), type=_ints, help="WARM,TIMED iterations per ray count of the steps step (default 60,60)")
-    parser.add_argument("--real", default=None, help="a preprocessed real clip (dataset folder) to train on the GPU (the real step)")
+    parser.add_argument("--real", action="append", default=[], help="a preprocessed real clip (dataset folder) to train on the GPU (the real step); repeat for several (runs in real_run, real_run1, ...)")
     parser.add_argument("--real-iters", default=(4345, 3555), type=_ints, help="HEAD,TORSO iterations of the real step's schedule before --real-scale (default 4345,3555: the README's CPU bench)")
     parser.add_argument("--real-scale", type=int, default=1, help="the real step trains TrainConfig(HEAD, TORSO).scaled(this): this many times the rays in as many times fewer steps (default 1)")
+    parser.add_argument("--demo-scale", type=int, default=1, help="the demo step runs adnerf demo --scale this (default 1; the render and steps steps use its scene and run)")
     parser.add_argument("--demo-scales", default=(), type=_ints, help="demo_scaled step: scales k of TrainConfig().scaled(k) to train the demo's scene with (default none)")
     args = parser.parse_args()
 

@@ -463,7 +463,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: is a file, not a folder; give a folder for the demo")
-    metrics = run_demo(args.output, device=_device(args.device))
+    from .commands.demo import DEMO_TRAIN
+
+    metrics = run_demo(args.output, device=_device(args.device), train_config=DEMO_TRAIN.scaled(args.scale))
     keys = ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "train_seconds", "render_fps", "total_seconds")
     print(json.dumps({k: metrics[k] for k in keys}, indent=1))
     return 0
@@ -558,6 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="synthesise a talking head, train, render held-out audio three ways, evaluate")
     demo.add_argument("-o", "--output", default="adnerf_demo", help="output folder (default adnerf_demo); re-running resumes")
     demo.add_argument("--device", default="cpu", help="cpu or cuda")
+    demo.add_argument("--scale", type=_number(int, 1, 64), default=1, help="train the demo's schedule in K times fewer steps of K times the rays from K times the frames, learning rates times sqrt(K) (as train --scale; for GPUs: --scale 4)")
     demo.set_defaults(func=_cmd_demo)
 
     synth = sub.add_parser("synth", help="create a synthetic talking-head dataset with exact ground truth")
