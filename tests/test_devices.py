@@ -106,3 +106,28 @@ def test_trainer_draws_frames_on_the_cpu_and_fuses_adam_on_cuda(tiny: Path, tmp_
     assert bool(tr.opt_head.defaults.get("fused")) == fused and bool(tr.opt_torso.defaults.get("fused")) == fused
     tr.head_stage(None)
     assert tr.head_step == 3 and all(torch.isfinite(p).all() for p in tr.model.parameters())
+
+
+def test_collectives_take_tensors_on_the_backends_device(device: torch.device) -> None:
+    """Under ``torchrun`` on GPUs the backend is NCCL, which refuses CPU tensors: the averaged loss
+    and the gradients must be reduced on the process's GPU (``gloo`` on the CPU). A process group
+    of one process, which ``Ranks`` counts as two, so each reduction returns this process's values
+    halved."""
+    from adnerf.model.distributed import Ranks
+
+    backend = "nccl" if device.type == "cuda" else "gloo"
+    available = torch.distributed.is_available() and (torch.distributed.is_nccl_available() if backend == "nccl" else torch.distributed.is_gloo_available())
+    if not available:
+        pytest.skip(f"torch.distributed with {backend} is not available")
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    torch.distributed.init_process_group(backend, store=torch.distributed.HashStore(), rank=0, world_size=1)
+    try:
+        ranks = Ranks(0, 2, backend, str(device) if backend == "nccl" else "cpu")
+        assert ranks.mean([2.0, 5.0]) == [1.0, 2.5]
+        p = torch.nn.Parameter(torch.ones(3, device=device))
+        p.grad = torch.full((3,), 4.0, device=device)
+        assert ranks.average_gradients([p])
+        assert p.grad.device == p.device and torch.equal(p.grad.cpu(), torch.full((3,), 2.0))
+    finally:
+        torch.distributed.destroy_process_group()

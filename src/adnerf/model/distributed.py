@@ -34,11 +34,14 @@ class Ranks:
         rank: This process's index.
         world: The number of processes.
         backend: ``"gloo"`` or ``"nccl"``; ``None`` for a single process.
+        device: Where the tensors of collectives live: the process's GPU under ``nccl``, which
+            refuses CPU tensors; the CPU under ``gloo``.
     """
 
     rank: int = 0
     world: int = 1
     backend: str | None = None
+    device: str = "cpu"
 
     @property
     def main(self) -> bool:
@@ -63,7 +66,7 @@ class Ranks:
         """The mean of each value over the processes."""
         if self.world == 1:
             return values
-        t = torch.tensor(values, dtype=torch.float64)
+        t = torch.tensor(values, dtype=torch.float64, device=self.device)
         torch.distributed.all_reduce(t)
         return (t / self.world).tolist()
 
@@ -109,10 +112,11 @@ def init_ranks(device: str) -> tuple[Ranks, str]:
     if world <= 1:
         return Ranks(), device
     cuda = device.startswith("cuda")
-    if not torch.distributed.is_initialized():
-        torch.distributed.init_process_group("nccl" if cuda else "gloo")
-    if cuda:
+    if cuda:  # before the process group: NCCL's communicators and all_gather_object use the current GPU
         local = int(os.environ.get("LOCAL_RANK", "0"))
         torch.cuda.set_device(local)
         device = f"cuda:{local}"
-    return Ranks(torch.distributed.get_rank(), torch.distributed.get_world_size(), torch.distributed.get_backend()), device
+    if not torch.distributed.is_initialized():
+        torch.distributed.init_process_group("nccl" if cuda else "gloo")
+    backend = torch.distributed.get_backend()
+    return Ranks(torch.distributed.get_rank(), torch.distributed.get_world_size(), backend, device if backend == "nccl" else "cpu"), device
