@@ -98,8 +98,9 @@ class TrainConfig:
         many rays as before; fractions of a stage are kept.
 
         This is the schedule for a GPU, where a step costs nearly the same for 1024 rays as for
-        8192 (33.7 and 46.4 ms per stage-1 step on an H200), and a step's frames are rendered in
-        one call. Measured on the shared real clip at 256 px (2-core CPU, the bench's 4345 + 3555
+        8192 (27 ms per stage-1 step for 1024 rays from one frame, 32 for 4096 from four, 38 for
+        8192 from eight on an H200), and a step's frames are rendered in one call. There ``k = 4``
+        trained the real clip in 48 s (256 px) and 63 s (450 px) to the CPU's held-out PSNR. Measured on the shared real clip at 256 px (2-core CPU, the bench's 4345 + 3555
         iterations, ``k = 4``; held-out frame / mouth crop / head PSNR): the default schedule
         30.81 / 27.40 / 30.86 and 30.94 / 27.69 / 30.76 dB (seeds 0 and 1); ``k = 4`` 30.76 /
         27.47 / 30.84 and 30.36 / 26.89 / 30.72 dB, with lower landmark distances (mouth LMD
