@@ -163,6 +163,8 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     # Three seconds of training render no face dlib finds: then there is no LMD, and it says why.
     assert ("lmd_mouth_px" in row) == (row["landmarks_found_render"] >= 0.5 * 11)
     assert row["layers"]["lip_in_head"] >= 0.98 and Path(row["sheet"]).stat().st_size > 0
+    lips = row["lip_signal"]  # the clip's own ceiling, from the dataset's landmarks and audio
+    assert lips["frames"] == 75 and len(lips["ridge_cv_blocks"]) == 6 and -1 <= lips["ridge_cv_corr"] <= 1
     assert set(row["seconds"]) == {"video", "preprocess", "train_wall", "evaluate", "sheet"}
     plot_mouth_opening(row, tmp_path / "mouth.png")
     assert (tmp_path / "mouth.png").stat().st_size > 0
@@ -200,10 +202,17 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     ev = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("psnr", "psnr_head", "ssim_head", "psnr_mouth", "lpips", "landmarks_found_true", "lse_d", "lse_c", "lse_d_true"):
         assert ev[key] == pytest.approx(row[key], abs=1e-6), key
+    # adnerf lip-signal measures the same ceiling from the dataset alone.
+    assert main(["lip-signal", row["dataset"], "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == json.loads(json.dumps(lips))
     # Without weights the columns say so, and nothing is fetched.
     assert main(["evaluate", row["run"], row["dataset"], "--json", "--no-landmarks"]) == 0
     bare = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert bare["syncnet"] == "no weights" and bare["lpips"] == "no weights" and "lse_d" not in bare
+    # A dataset without landmarks has no lip signal: refused in one line.
+    (Path(row["dataset"]) / "landmarks.npy").rename(tmp_path / "landmarks.npy")
+    assert main(["lip-signal", row["dataset"]]) == 2
+    assert "no landmarks.npy" in capsys.readouterr().err
 
 
 def test_landmark_evaluation_of_true_and_delayed_frames(clip: Path, tmp_path: Path) -> None:

@@ -164,6 +164,13 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from exc
     keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "lmd_mouth_shape_px", "lmd_mouth_still_px", "mouth_open_corr", "av_offset_frames", "lpips", "lse_d", "lse_c", "lse_d_true", "lse_c_true", "train_seconds")
     table = "\n".join(f"{k:>18}: {row.get(k, row['syncnet'] if k.startswith('lse') else None)}" for k in keys) + f"\n{'contact sheet':>18}: {row['sheet']}"
+    lips = row["lip_signal"]
+
+    def two(v: float | None) -> str:
+        return "n/a" if v is None else f"{v:.2f}"
+
+    ceiling = lips.get("unavailable") or f"audio -> true opening, ridge corr held out {two(lips['ridge_tail_corr'])}, cross-validated {two(lips['ridge_cv_corr'])} (adnerf lip-signal)"
+    table += f"\n{'clip lip signal':>18}: {ceiling}"
     for d in row["driven"]:
         table += f"\n{'driven':>18}: {d['audio']} ({d['lips']}): lips vs speech activity corr {d['corr']}, best shift {d['offset']} frames ({d['corr_at_offset']})"
         if "lse_d" in d:
@@ -310,6 +317,36 @@ def _cmd_check_preprocess(args: argparse.Namespace) -> int:
     else:
         for k, v in out.items():
             print(f"{k:32s} {v}")
+    return 0
+
+
+def _cmd_lip_signal(args: argparse.Namespace) -> int:
+    from .evaluation.lip_signal import dataset_lip_signal
+
+    try:
+        signal = dataset_lip_signal(args.dataset, blocks=args.blocks, guard=args.guard)
+    except ValueError as exc:
+        if isinstance(exc, _user_errors()):
+            raise
+        raise CliError(str(exc)) from exc
+    doc = signal.to_dict()
+    if args.json:
+        print(json.dumps(doc))
+        return 0
+    words = {
+        "loudness_corr": "opening vs voiced loudness (corr, same frame)",
+        "loudness_offset_frames": "best shift, frames (> 0: mouth after sound)",
+        "loudness_corr_at_offset": "corr at that shift",
+        "ridge_tail_corr": "audio -> opening, fit on train, held-out corr",
+        "ridge_cv_corr": f"audio -> opening, {args.blocks}-block cross-validated corr",
+    }
+    print(f"{args.dataset}: {doc['frames']} frames")
+    for key, text in words.items():
+        value = doc[key]
+        print(f"{text:>48}: {value:.3f}" if isinstance(value, float) else f"{text:>48}: {value}")
+    print(f"{'per block':>48}: " + " ".join(f"{c:.2f}" for c in doc["ridge_cv_blocks"]))
+    if doc["ridge_cv_corr"] is not None and doc["ridge_cv_corr"] < 0.3:
+        print("a cross-validated correlation this low means the clip is too short (or its mouth too little tied to its sound) for any audio encoder to learn its lip movements; AD-NeRF trains on 3-5 minutes")
     return 0
 
 
@@ -604,6 +641,13 @@ def build_parser() -> argparse.ArgumentParser:
     chk.add_argument("--truth", required=True, help="the synthetic scene folder (adnerf synth output)")
     chk.add_argument("--json", action="store_true", help="one JSON object on stdout")
     chk.set_defaults(func=_cmd_check_preprocess)
+
+    lips = sub.add_parser("lip-signal", help="how much a preprocessed clip's audio predicts its mouth opening: the lip-sync ceiling of training on it")
+    lips.add_argument("dataset", help="dataset written by adnerf preprocess (needs its landmarks.npy)")
+    lips.add_argument("--blocks", type=int, default=6, help="contiguous cross-validation blocks")
+    lips.add_argument("--guard", type=int, default=8, help="frames left out on either side of a tested block")
+    lips.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    lips.set_defaults(func=_cmd_lip_signal)
 
     tr = sub.add_parser("train", help="train the head (stage 1) and torso (stage 2) fields on a dataset")
     tr.add_argument("dataset", help="dataset folder")

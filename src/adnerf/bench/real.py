@@ -201,6 +201,7 @@ def bench_real(
         The metrics, the settings, the iteration counts and the seconds of each step.
     """
     from ..evaluation.evaluate import evaluate_run
+    from ..evaluation.lip_signal import dataset_lip_signal
     from ..evaluation.lpips import lpips_if_available
     from ..evaluation.syncnet import load_syncnet
     from ..model.data import load_dataset
@@ -281,6 +282,10 @@ def bench_real(
             driven.append({**drive_with_speech(run, ds, path, folder / f"driven_{Path(path).stem}.mp4", sync), "lips": "render"})
         seconds["drive"] = time.perf_counter() - t0
 
+    try:  # the clip's own ceiling: how much its audio predicts its mouth (before any training)
+        lips = dataset_lip_signal(data).to_dict()
+    except ValueError as exc:  # no landmarks, or too few frames for the folds
+        lips = {"unavailable": str(exc)}
     elapsed = run.elapsed
     report = json.loads(report_path.read_text())
     return {
@@ -298,6 +303,7 @@ def bench_real(
         "train_seconds": elapsed["head"] + elapsed["torso"],
         "device": device,
         "layers": report.get("layers"),
+        "lip_signal": lips,
         **metrics,
         "lpips": metrics.get("lpips", "no weights"),
         "syncnet": metrics["syncnet"],

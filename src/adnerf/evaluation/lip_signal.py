@@ -1,0 +1,217 @@
+"""How much a clip's audio tells about its mouth: the ceiling of lip sync that training can reach.
+
+A radiance field driven by audio can only learn the mouth movements that the clip's audio
+predicts. This module measures that on the dataset itself, before or without any training, from
+the true inner-lip opening (dlib's landmarks of the true frames, ``landmarks.npy``) and the
+audio:
+
+- **Loudness**: the correlation of the opening with the loudness of the voiced band
+  (:func:`~adnerf.audio.features.voiced_loudness`) and the shift that maximises it. In recorded
+  speech the jaw opens for the loud vowels, so this is clearly positive near shift 0; a clip
+  whose mouth was made by another system, or whose sound is offset, shows it.
+- **Ridge**: a linear map from a frame's feature window (the windows the audio encoder reads,
+  ``features.npy``) to its opening, fitted on some frames and scored on others by Pearson
+  correlation. ``tail``: fitted on the training frames, scored on the held-out ones (what a
+  trained run's held-out ``mouth_open_corr`` is measured on). ``cv``: blocked cross-validation,
+  the clip cut into ``blocks`` contiguous blocks, each scored by a map fitted on the others minus
+  ``guard`` frames on either side (neighbouring frames share audio windows). A long clip of
+  one voice gives a ``cv`` well above zero; a short one does not, and then no audio encoder
+  learns the mouth from it either (the encoder is not linear, but with a few hundred frames it
+  overfits sooner than a ridge map does).
+
+Conventions: frames are on the audio clock (frame ``i`` at ``i / fps`` seconds); offsets are in
+frames, positive when the mouth moves *after* the sound (as :func:`~adnerf.evaluation.landmark_metrics.av_offset`).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .landmark_metrics import av_offset, mouth_opening, pearson
+
+__all__ = ["LipSignal", "blocked_folds", "dataset_lip_signal", "lip_signal", "ridge_fit_predict"]
+
+
+@dataclass
+class LipSignal:
+    """What a clip's audio predicts about its mouth (:func:`lip_signal`).
+
+    Attributes:
+        frames: Frames measured.
+        loudness_corr: Pearson correlation of the inner-lip opening with the voiced loudness at
+            the same time; ``nan`` without audio.
+        loudness_offset_frames: Shift in ``[-max_shift, max_shift]`` maximising that correlation
+            (positive: the mouth moves after the sound).
+        loudness_corr_at_offset: The correlation at that shift.
+        ridge_tail_corr: Correlation over the held-out frames of the opening predicted by a ridge
+            map fitted on the training frames; ``nan`` without a split.
+        ridge_cv_corr: Mean over the blocks of the blocked cross-validated correlation.
+        ridge_cv_blocks: The per-block correlations, in clip order.
+    """
+
+    frames: int
+    loudness_corr: float
+    loudness_offset_frames: int
+    loudness_corr_at_offset: float
+    ridge_tail_corr: float
+    ridge_cv_corr: float
+    ridge_cv_blocks: list[float]
+
+    def to_dict(self) -> dict:
+        """A JSON-serialisable dict (``nan`` as ``None``)."""
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in asdict(self).items()}
+
+
+def ridge_fit_predict(x_fit: np.ndarray, y_fit: np.ndarray, x_pred: np.ndarray, strength: float = 0.1) -> np.ndarray:
+    """Fit a ridge map ``x -> y`` and apply it.
+
+    The columns of ``x`` are standardised on the fitted rows (a constant column is centred and
+    left unscaled), ``y`` is centred, and the penalty is ``strength`` times the number of fitted
+    rows, so the same strength suits clips of any length. Solved in the primal (``D x D``) or the
+    dual (``n x n``) form, whichever is smaller; both give the same map.
+
+    Args:
+        x_fit: ``(n, D)`` inputs of the fitted rows.
+        y_fit: ``(n,)`` targets.
+        x_pred: ``(m, D)`` inputs to predict.
+        strength: Penalty per fitted row (> 0).
+
+    Returns:
+        ``(m,)`` predictions, float64.
+    """
+    x_fit, x_pred = np.asarray(x_fit, np.float64), np.asarray(x_pred, np.float64)
+    y_fit = np.asarray(y_fit, np.float64)
+    if x_fit.ndim != 2 or x_pred.ndim != 2 or x_fit.shape[1] != x_pred.shape[1] or y_fit.shape != (x_fit.shape[0],):
+        raise ValueError(f"ridge needs x_fit (n, D), y_fit (n,) and x_pred (m, D); got {x_fit.shape}, {y_fit.shape}, {x_pred.shape}")
+    if not strength > 0:
+        raise ValueError(f"the ridge strength must be positive; got {strength}")
+    n, d = x_fit.shape
+    mean, std = x_fit.mean(axis=0), x_fit.std(axis=0)
+    std = np.where(std > 0, std, 1.0)
+    a, b = (x_fit - mean) / std, (x_pred - mean) / std
+    y0 = y_fit.mean()
+    lam = strength * n
+    if d <= n:
+        w = np.linalg.solve(a.T @ a + lam * np.eye(d), a.T @ (y_fit - y0))
+    else:
+        w = a.T @ np.linalg.solve(a @ a.T + lam * np.eye(n), y_fit - y0)
+    return b @ w + y0
+
+
+def blocked_folds(n: int, blocks: int, guard: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Contiguous cross-validation folds over ``n`` frames in clip order.
+
+    Returns ``blocks`` pairs ``(fit, test)``: the test blocks tile ``0 .. n-1`` (sizes differing by
+    at most one), and each fit set is every frame more than ``guard`` frames away from its test
+    block.
+
+    Raises:
+        ValueError: Fewer than 2 blocks, a negative guard, or too few frames to leave at least 8
+            fitted frames and 4 tested frames per fold.
+    """
+    if blocks < 2 or guard < 0:
+        raise ValueError(f"cross-validation needs >= 2 blocks and a guard >= 0; got {blocks}, {guard}")
+    edges = np.linspace(0, n, blocks + 1).round().astype(int)
+    folds = []
+    for lo, hi in itertools.pairwise(edges):
+        frames = np.arange(n)
+        fit = frames[(frames < lo - guard) | (frames >= hi + guard)]
+        test = frames[lo:hi]
+        if len(test) < 4 or len(fit) < 8:
+            raise ValueError(f"{n} frames are too few for {blocks} blocks with a guard of {guard} frames")
+        folds.append((fit, test))
+    return folds
+
+
+def lip_signal(
+    windows: np.ndarray,
+    opening: np.ndarray,
+    *,
+    loudness: np.ndarray | None = None,
+    train: Sequence[int] | None = None,
+    test: Sequence[int] | None = None,
+    blocks: int = 6,
+    guard: int = 8,
+    max_shift: int = 5,
+    strength: float = 0.1,
+) -> LipSignal:
+    """Measure how much the audio of a clip predicts its mouth opening.
+
+    Args:
+        windows: ``(N, 16, D)`` feature windows, one per frame (or ``(N, F)`` flat features).
+        opening: ``(N,)`` true inner-lip opening per frame (pixels; any scale).
+        loudness: ``(N,)`` voiced loudness per frame, or ``None`` (the loudness fields are ``nan``).
+        train: Training frames for the tail figure; with ``test``, or both ``None``.
+        test: Held-out frames for the tail figure.
+        blocks: Cross-validation blocks.
+        guard: Frames left out on either side of a test block (the windows' half width is 4
+            video frames at 25 fps; 8 leaves room for the smoothing over neighbouring frames).
+        max_shift: Largest loudness shift tried, frames.
+        strength: Ridge penalty per fitted row (:func:`ridge_fit_predict`).
+
+    Raises:
+        ValueError: Mismatched lengths, non-finite values, or too few frames for the folds.
+    """
+    x = np.asarray(windows, np.float64)
+    y = np.asarray(opening, np.float64)
+    n = x.shape[0]
+    x = x.reshape(n, -1)
+    if y.shape != (n,):
+        raise ValueError(f"one opening per window: {n} windows, openings of shape {y.shape}")
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise ValueError("feature windows and openings must be finite (frames without a face have no opening)")
+    if (train is None) != (test is None):
+        raise ValueError("give both the training and the held-out frames, or neither")
+    folds = blocked_folds(n, blocks, guard)
+    per_block = [pearson(ridge_fit_predict(x[fit], y[fit], x[te], strength), y[te]) for fit, te in folds]
+    tail = float("nan")
+    if train is not None and test is not None:
+        tr, te = np.asarray(train, int), np.asarray(test, int)
+        tail = pearson(ridge_fit_predict(x[tr], y[tr], x[te], strength), y[te])
+    l_corr, l_off, l_at = float("nan"), 0, float("nan")
+    if loudness is not None:
+        loud = np.asarray(loudness, np.float64)
+        if loud.shape != (n,):
+            raise ValueError(f"one loudness per frame: {n} frames, loudness of shape {loud.shape}")
+        l_corr = pearson(loud, y)
+        k, l_at = av_offset(y, loud, max_shift)  # k > 0: the mouth at t + k matches the sound at t
+        l_off = int(k)
+    return LipSignal(n, float(l_corr), l_off, float(l_at), float(tail), float(np.nanmean(per_block)), [float(c) for c in per_block])
+
+
+def dataset_lip_signal(root: str | Path, **kwargs: object) -> LipSignal:
+    """:func:`lip_signal` of a dataset folder: its ``features.npy``, the opening of its
+    ``landmarks.npy``, the voiced loudness of its ``audio.wav`` at the frame times, and its
+    train / test split (``meta.json``). Frames whose landmarks are missing (NaN) are left out.
+
+    Raises:
+        adnerf.model.data.DatasetError: Not a dataset, or no ``landmarks.npy`` (``adnerf
+            preprocess`` writes it; a synthetic scene has none).
+    """
+    from ..audio.features import voiced_loudness
+    from ..io import read_audio
+    from ..model.data import DatasetError, read_meta
+
+    root = Path(root)
+    meta = read_meta(root)
+    if not (root / "landmarks.npy").exists():
+        raise DatasetError(f"{root}: no landmarks.npy; the lip signal needs the true frames' face landmarks (adnerf preprocess writes them)")
+    windows = np.load(root / "features.npy")
+    landmarks = np.load(root / "landmarks.npy")
+    if landmarks.shape != (meta.n_frames, 68, 2) or windows.shape[0] != meta.n_frames:
+        raise DatasetError(f"{root}: landmarks {landmarks.shape} and features {windows.shape} do not match its {meta.n_frames} frames")
+    audio = read_audio(root / "audio.wav")
+    loud = voiced_loudness(np.asarray(audio.samples, np.float64), audio.sample_rate, np.arange(meta.n_frames) / meta.fps)
+    opening = mouth_opening(landmarks)
+    keep = np.flatnonzero(np.isfinite(opening))
+    renumber = {int(f): i for i, f in enumerate(keep)}
+    train = [renumber[f] for f in meta.train if f in renumber]
+    test = [renumber[f] for f in meta.test if f in renumber]
+    if not (train and test):
+        train = test = None
+    return lip_signal(windows[keep], opening[keep], loudness=loud[keep], train=train, test=test, **kwargs)  # type: ignore[arg-type]

@@ -1,0 +1,92 @@
+"""The lip-signal ceiling: ridge maps against a slow reference, folds that never see their test
+block, a mouth predictable from its audio against one that is not, and the sign of the mouth's delay."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from adnerf.audio.features import voiced_loudness
+from adnerf.evaluation.lip_signal import blocked_folds, lip_signal, ridge_fit_predict
+
+
+def _reference_ridge(x_fit: np.ndarray, y_fit: np.ndarray, x_pred: np.ndarray, strength: float) -> np.ndarray:
+    """Minimise |A w - (y - mean y)|^2 + strength * n |w|^2 over standardised columns, by lstsq on
+    the augmented system [A; sqrt(lam) I] w = [y; 0]."""
+    n, d = x_fit.shape
+    mean, std = x_fit.mean(0), x_fit.std(0)
+    std[std == 0] = 1.0
+    a = (x_fit - mean) / std
+    aug = np.vstack([a, np.sqrt(strength * n) * np.eye(d)])
+    rhs = np.concatenate([y_fit - y_fit.mean(), np.zeros(d)])
+    w = np.linalg.lstsq(aug, rhs, rcond=None)[0]
+    return (x_pred - mean) / std @ w + y_fit.mean()
+
+
+@pytest.mark.parametrize("n, d", [(60, 12), (12, 60)])  # the primal and the dual form
+def test_ridge_equals_the_augmented_least_squares(n: int, d: int) -> None:
+    rng = np.random.default_rng(0)
+    x, y, xp = rng.normal(size=(n, d)) * rng.uniform(0.1, 10, d), rng.normal(size=n), rng.normal(size=(7, d))
+    x[:, 3] = 2.5  # a constant column
+    xp[:, 3] = 2.5
+    for strength in (0.01, 4.0):
+        np.testing.assert_allclose(ridge_fit_predict(x, y, xp, strength), _reference_ridge(x, y, xp, strength), rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match="positive"):
+        ridge_fit_predict(x, y, xp, 0.0)
+    with pytest.raises(ValueError, match="ridge needs"):
+        ridge_fit_predict(x, y[:-1], xp)
+
+
+def test_folds_tile_the_clip_and_keep_the_guard() -> None:
+    folds = blocked_folds(100, 6, 8)
+    tested = np.concatenate([te for _, te in folds])
+    np.testing.assert_array_equal(tested, np.arange(100))  # each frame tested once, in clip order
+    for fit, te in folds:
+        gap = np.abs(fit[:, None] - te[None, :]).min()
+        assert gap == 9  # the nearest fitted frame is guard + 1 away
+        assert len(fit) + len(te) + 16 - 8 * (te[0] == 0) - 8 * (te[-1] == 99) == 100
+    with pytest.raises(ValueError, match="too few"):
+        blocked_folds(24, 6, 8)  # 4 tested, but only 4 fitted beside a middle block
+
+
+def _windows(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Feature windows of a smooth stationary feature track (each feature an AR(1) series, as
+    speech features are), cut as the extractor's overlapping windows."""
+    noise = rng.normal(size=(n + 16, 6))
+    track = np.zeros_like(noise)
+    for i in range(1, len(track)):
+        track[i] = 0.7 * track[i - 1] + noise[i]
+    return np.stack([track[i : i + 16] for i in range(n)])
+
+
+def test_a_mouth_the_audio_predicts_scores_high_and_a_shuffled_one_does_not() -> None:
+    rng = np.random.default_rng(1)
+    n = 300
+    windows = _windows(n, rng)
+    opening = windows[:, 8, 2] - 0.5 * windows[:, 6, 4] + 0.1 * rng.normal(size=n)
+    split = {"train": range(255), "test": range(255, n)}
+    good = lip_signal(windows, opening, **split)
+    assert good.ridge_cv_corr > 0.9 and good.ridge_tail_corr > 0.9 and min(good.ridge_cv_blocks) > 0.9
+    bad = lip_signal(windows, rng.permutation(opening), **split)
+    assert abs(bad.ridge_cv_corr) < 0.25 and abs(bad.ridge_tail_corr) < 0.5
+    assert np.isnan(good.loudness_corr) and good.to_dict()["loudness_corr"] is None  # no audio given
+    with pytest.raises(ValueError, match="one opening per window"):
+        lip_signal(windows, opening[:-1])
+    with pytest.raises(ValueError, match="or neither"):
+        lip_signal(windows, opening, train=range(10))
+
+
+@pytest.mark.parametrize("late", [3, -2])
+def test_the_loudness_shift_is_the_mouths_delay(late: int) -> None:
+    """Vowel bursts of a 300 Hz tone; the mouth opens ``late`` frames after each (before, if < 0)."""
+    rate, fps, n = 16000, 25.0, 250
+    rng = np.random.default_rng(2)
+    t = np.arange(int(n / fps * rate)) / rate
+    level = np.repeat(rng.uniform(0, 1, n // 5) > 0.5, 5).astype(float)  # on / off in 200 ms steps
+    envelope = np.interp(t, np.arange(n) / fps, np.convolve(level, np.ones(3) / 3, "same"))
+    samples = envelope * np.sin(2 * np.pi * 300 * t)
+    loud = voiced_loudness(samples, rate, np.arange(n) / fps)
+    opening = np.roll(loud, late) + 0.02 * rng.normal(size=n)  # the mouth at t shows the sound at t - late
+    signal = lip_signal(_windows(n, rng), opening, loudness=loud)
+    assert signal.loudness_offset_frames == late and signal.loudness_corr_at_offset > 0.9
+    assert signal.loudness_corr < signal.loudness_corr_at_offset
