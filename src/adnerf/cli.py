@@ -325,9 +325,9 @@ def _cmd_lip_signal(args: argparse.Namespace) -> int:
 
     try:
         signal = dataset_lip_signal(args.dataset, blocks=args.blocks, guard=args.guard)
-    except ValueError as exc:
-        if isinstance(exc, _user_errors()):
-            raise
+    except _user_errors():  # not a dataset, no landmarks: main prints them
+        raise
+    except ValueError as exc:  # too few frames for the folds
         raise CliError(str(exc)) from exc
     doc = signal.to_dict()
     if args.json:

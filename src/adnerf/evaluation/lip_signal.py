@@ -50,7 +50,8 @@ class LipSignal:
         loudness_corr_at_offset: The correlation at that shift.
         ridge_tail_corr: Correlation over the held-out frames of the opening predicted by a ridge
             map fitted on the training frames; ``nan`` without a split.
-        ridge_cv_corr: Mean over the blocks of the blocked cross-validated correlation.
+        ridge_cv_corr: Mean over the blocks of the blocked cross-validated correlation (a block
+            whose opening never changes has no correlation and is left out of the mean).
         ridge_cv_blocks: The per-block correlations, in clip order.
     """
 
@@ -117,9 +118,9 @@ def blocked_folds(n: int, blocks: int, guard: int) -> list[tuple[np.ndarray, np.
     if blocks < 2 or guard < 0:
         raise ValueError(f"cross-validation needs >= 2 blocks and a guard >= 0; got {blocks}, {guard}")
     edges = np.linspace(0, n, blocks + 1).round().astype(int)
+    frames = np.arange(n)
     folds = []
     for lo, hi in itertools.pairwise(edges):
-        frames = np.arange(n)
         fit = frames[(frames < lo - guard) | (frames >= hi + guard)]
         test = frames[lo:hi]
         if len(test) < 4 or len(fit) < 8:
