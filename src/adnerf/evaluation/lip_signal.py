@@ -188,7 +188,8 @@ def lip_signal(
 def dataset_lip_signal(root: str | Path, **kwargs: object) -> LipSignal:
     """:func:`lip_signal` of a dataset folder: its ``features.npy``, the opening of its
     ``landmarks.npy``, the voiced loudness of its ``audio.wav`` at the frame times, and its
-    train / test split (``meta.json``). Frames whose landmarks are missing (NaN) are left out.
+    train / test split (``meta.json``). Preprocessing interpolates the landmarks of frames where
+    no face was found, so every frame has an opening; a non-finite one is a ``ValueError``.
 
     Raises:
         adnerf.model.data.DatasetError: Not a dataset, or no ``landmarks.npy`` (``adnerf
@@ -208,11 +209,5 @@ def dataset_lip_signal(root: str | Path, **kwargs: object) -> LipSignal:
         raise DatasetError(f"{root}: landmarks {landmarks.shape} and features {windows.shape} do not match its {meta.n_frames} frames")
     audio = read_audio(root / "audio.wav")
     loud = voiced_loudness(np.asarray(audio.samples, np.float64), audio.sample_rate, np.arange(meta.n_frames) / meta.fps)
-    opening = mouth_opening(landmarks)
-    keep = np.flatnonzero(np.isfinite(opening))
-    renumber = {int(f): i for i, f in enumerate(keep)}
-    train = [renumber[f] for f in meta.train if f in renumber]
-    test = [renumber[f] for f in meta.test if f in renumber]
-    if not (train and test):
-        train = test = None
-    return lip_signal(windows[keep], opening[keep], loudness=loud[keep], train=train, test=test, **kwargs)  # type: ignore[arg-type]
+    split = {"train": list(meta.train), "test": list(meta.test)} if meta.train and meta.test else {}
+    return lip_signal(windows, mouth_opening(landmarks), loudness=loud, **split, **kwargs)  # type: ignore[arg-type]
