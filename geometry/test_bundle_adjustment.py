@@ -115,6 +115,33 @@ def test_huber_loss_limits_gross_outliers() -> None:
     assert robust.inlier_fraction == pytest.approx(1 - 4 / uv[..., 0].numel())
 
 
+def test_point_weights_equal_repeated_observations_and_zero_leaves_a_point_out() -> None:
+    """A point of weight 3 costs what three copies of its observations cost, so both adjustments
+    reach the same poses; a point of weight 0 is as if it were not there."""
+    R, t, X = _scene(8, 12)
+    g = torch.Generator().manual_seed(4)
+    uv = _observe(R, t, X) + 0.4 * torch.randn(8, 12, 2, generator=g, dtype=torch.float64)  # residuals stay: the weights matter
+    uv[:, 0] += torch.tensor([1.5, -0.8], dtype=torch.float64)  # point 0 disagrees with the rest
+    R0 = torch.stack([euler_rotation(*(0.03 * torch.randn(3, generator=g)).tolist(), like=X) for _ in R]) @ R
+    R0[0] = R[0]
+    kw = {"fixed_frame": 0, "huber": 1e9, "iterations": 60, "tolerance": 1e-14}
+    w = torch.ones(12, dtype=torch.float64)
+    w[0] = 3.0
+    weighted = bundle_adjust(R0.clone(), t.clone(), X.clone(), uv, K, point_weights=w, **kw)
+    copies = bundle_adjust(R0.clone(), t.clone(), torch.cat([X[:1], X[:1], X]), torch.cat([uv[:, :1], uv[:, :1], uv], 1), K, **kw)
+    torch.testing.assert_close(weighted.R, copies.R, atol=1e-8, rtol=0)
+    torch.testing.assert_close(weighted.t, copies.t, atol=1e-8, rtol=0)
+    plain = bundle_adjust(R0.clone(), t.clone(), X.clone(), uv, K, **kw)
+    assert float((weighted.R - plain.R).abs().max()) > 1e-4  # the weight moved the poses
+    w[0] = 0.0
+    zero = bundle_adjust(R0.clone(), t.clone(), X.clone(), uv, K, point_weights=w, **kw)
+    without = bundle_adjust(R0.clone(), t.clone(), X[1:].clone(), uv[:, 1:], K, **kw)
+    torch.testing.assert_close(zero.R, without.R, atol=1e-8, rtol=0)
+    assert zero.rms == pytest.approx(without.rms, rel=1e-6)  # the reported error leaves it out too
+    with pytest.raises(ValueError, match="non-negative"):
+        bundle_adjust(R0, t, X, uv, K, point_weights=-w)
+
+
 def test_unconstrained_frames_and_bad_shapes_are_refused() -> None:
     R, t, X = _scene(4, 6)
     uv = _observe(R, t, X)

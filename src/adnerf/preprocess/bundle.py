@@ -112,6 +112,7 @@ def bundle_adjust(
     huber: float = 1.0,
     shape_radii: torch.Tensor | None = None,
     shape_sigma: float = 0.05,
+    point_weights: torch.Tensor | None = None,
     iterations: int = 30,
     tolerance: float = 1e-7,
     progress: Callable[[int, float], None] | None = None,
@@ -131,6 +132,9 @@ def bundle_adjust(
             point (it resolves the depth-relief / rotation ambiguity of a head seen from the
             front). ``None``: no prior.
         shape_sigma: Radial deviation (a fraction of the radius) that costs as much as one pixel.
+        point_weights: ``(P,)`` non-negative weight of each point's observations in the cost
+            (their Huber losses are multiplied by it); ``None``: all 1. The reported RMS, median
+            and inlier fraction count the observations of points of positive weight, unweighted.
         iterations: Maximum LM iterations.
         tolerance: Stop when the relative decrease of the cost is below this.
         progress: Called as ``progress(iteration, rms)``.
@@ -151,8 +155,11 @@ def bundle_adjust(
     lonely = [i for i in range(n) if i != fixed_frame and int(seen[i].sum()) < 3]
     if lonely:
         raise ValueError(f"frames {lonely[:10]} have fewer than 3 observed points; their pose is not constrained")
+    if point_weights is not None and (point_weights.shape != (p,) or not bool((point_weights >= 0).all())):
+        raise ValueError(f"point_weights must be ({p},) and non-negative; got shape {tuple(point_weights.shape)}")
     frame, point = seen.nonzero(as_tuple=True)
     obs = uv[frame, point]
+    ow = torch.ones(len(frame), dtype=uv.dtype, device=uv.device) if point_weights is None else point_weights.to(uv)[point]  # (M,) observation weights
     free = torch.ones(n, dtype=torch.bool, device=uv.device)
     free[fixed_frame] = False
     col = torch.cumsum(free.long(), 0) - 1  # frame -> block column among free frames
@@ -171,16 +178,21 @@ def bundle_adjust(
         r = reprojection_residuals(R_, t_, X_, frame, point, obs, intrinsics)
         e = r.norm(dim=-1)
         rho = torch.where(e <= huber, 0.5 * e**2, huber * (e - 0.5 * huber))
-        return rho.sum() + 0.5 * prior(X_)[0].pow(2).sum(), r
+        return (ow * rho).sum() + 0.5 * prior(X_)[0].pow(2).sum(), r
+
+    counted = ow > 0  # observations the reported errors describe
+
+    def rms_of(r_: torch.Tensor) -> float:
+        return float(r_[counted].pow(2).sum(-1).mean().sqrt())
 
     cost, r = cost_of(R, t, points)
-    rms_before = float(r.pow(2).sum(-1).mean().sqrt())
+    rms_before = rms_of(r)
     lam = 1e-3
     it = 0
     rel = 0.0
     for it in range(1, iterations + 1):
         e = r.norm(dim=-1)
-        w = torch.where(e <= huber, torch.ones_like(e), huber / e.clamp_min(huber))  # IRLS weights of the Huber loss
+        w = ow * torch.where(e <= huber, torch.ones_like(e), huber / e.clamp_min(huber))  # IRLS weights of the Huber loss
         jc, jp = residual_jacobians(R, t, points, frame, point, intrinsics)
         wjc, wjp = w[:, None, None] * jc, w[:, None, None] * jp
         # Normal equations, block by block.
@@ -226,16 +238,16 @@ def bundle_adjust(
                     break
             lam *= 10.0
         if progress is not None:
-            progress(it, float(r.pow(2).sum(-1).mean().sqrt()))
+            progress(it, rms_of(r))
         if not improved or rel < tolerance:
             break
-    e = r.norm(dim=-1)
+    e = r.norm(dim=-1)[counted]
     return BundleResult(
         R=R,
         t=t,
         points=points,
         rms_before=rms_before,
-        rms=float(e.pow(2).mean().sqrt()),
+        rms=rms_of(r),
         median=float(e.median()),
         iterations=it,
         inlier_fraction=float((e <= huber).double().mean()),
