@@ -17,11 +17,13 @@ from adnerf.preprocess.landmarks import (
     JAW,
     MOUTH,
     NOSE_BASE,
+    POSE_LANDMARKS,
     Detection,
     DlibFaceDetector,
     FaceTrackConfig,
     bundled_shape_predictor,
     make_face_detector,
+    pose_landmarks,
     track_faces,
 )
 from adnerf.preprocess.parsing import (
@@ -223,3 +225,15 @@ def test_layer_check_counts_landmarks_in_the_head() -> None:
     assert check["lip_in_head"] == 0.5 and check["lip_in_head_worst"] == 0.5
     assert check["chin_lip_midpoint_in_head"] == 0.0 and check["chin_lip_midpoint_worst_frame"] == 0  # (90.5 + 60.5) / 2 = 75.5
     assert check["chin_in_head"] == 0.8  # landmarks 6, 7, 9, 10 at row 20.5, 8 at 90.5
+
+
+def test_pose_landmarks_are_the_nose_and_eye_corners_of_detected_frames_only() -> None:
+    """The pose's adjustment gets the nose (27-35) and the eyes' corners, measured: frames the
+    tracker filled in between detections are NaN, not a guess weighted as a measurement."""
+    lm = np.arange(3 * 68 * 2, dtype=np.float64).reshape(3, 68, 2)
+    out = pose_landmarks(lm, np.array([True, False, True]))
+    assert POSE_LANDMARKS == tuple(range(27, 36)) + (36, 39, 42, 45)
+    np.testing.assert_array_equal(out[[0, 2]], lm[[0, 2]][:, list(POSE_LANDMARKS)])
+    assert np.isnan(out[1]).all()
+    with pytest.raises(ValueError, match="do not match"):
+        pose_landmarks(lm, np.array([True, False]))

@@ -16,7 +16,7 @@ from adnerf.io import AudioTrack, MediaError, write_video
 from adnerf.model.data import LABEL_HEAD, LABEL_TORSO, load_dataset
 from adnerf.pose import rotation_angle
 from adnerf.preprocess import PreprocessConfig, PreprocessError, preprocess_video
-from adnerf.preprocess.headpose import estimate_head_poses, mean_rotation
+from adnerf.preprocess.headpose import align_poses, estimate_head_poses, mean_rotation
 from adnerf.preprocess.parsing import (
     SHOULDER_HALF_WIDTH,
     person_hull,
@@ -71,6 +71,8 @@ def test_preprocess_recovers_the_synthetic_truth(preprocessed: Path, scene: Path
     landmarks = np.load(preprocessed / "landmarks.npy")
     assert landmarks.shape == (75, 68, 2) and np.isfinite(landmarks).all()
     assert report["pose_reprojection_rms_px"] < 1.0
+    # The nose and eye corners joined the pose's adjustment, and the poses agree with them.
+    assert report["pose_landmark_weight"] == PreprocessConfig.pose_landmarks > 0 and report["pose_landmark_rms_px"] < 1.0
     assert (preprocessed / "preprocess_report.png").stat().st_size > 0
     assert not any(p.name.startswith(".") for p in preprocessed.parent.iterdir()), "work folder left behind"
     # The mouth is in the head layer: the classical parser's row cut is replaced by the jaw line.
@@ -125,6 +127,7 @@ def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path, monkeypa
     assert guess[0] == 0.0 and json.loads((out / "meta.json").read_text())["mouth"] != guess
     # ... and the head / torso cut is the neck-row guess, which the report says.
     assert "a guess" in report["face_head_torso_cut"] and "not known" in report["layers"]["note"]
+    assert report["pose_landmark_weight"] == 0.0 and report["pose_landmark_rms_px"] is None  # no landmarks for the pose either
     # --cut neck-row keeps the parser's row cut with landmarks and --clothes none its clothes (for
     # comparisons): other layers, a smaller person, and the report warns of the missing clothes.
     row = preprocess_video(scene / "video.mp4", tmp_path / "row", PreprocessConfig(focal=1.33 * 96, cut="neck-row", clothes="none"))
@@ -137,6 +140,8 @@ def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path, monkeypa
         PreprocessConfig(cut="ear").validate()
     with pytest.raises(PreprocessError, match="--clothes"):
         PreprocessConfig(clothes="paint").validate()
+    with pytest.raises(PreprocessError, match="pose_landmarks"):
+        PreprocessConfig(pose_landmarks=-1.0).validate()
 
 
 def _write(path: Path, frames: np.ndarray, audio: bool = True, fps: float = 25.0) -> Path:
@@ -411,6 +416,60 @@ def test_head_pose_gauge_is_the_mean_orientation() -> None:
         assert rotation_angle_deg((Re[i] @ Re[0].T) @ (R[i] @ R[0].T).T) < 0.05
     q = np.einsum("nij,pj->npi", Re, est.points) + est.poses[:, None, :3, 3]
     assert np.abs(f * q[..., :2] / q[..., 2:] + size / 2 - uv).max() < 0.05
+
+
+def _turning_head(n: int = 24, size: int = 128, f: float = 170.0, seed: int = 0) -> tuple:
+    """An ellipsoidal head turning by 0..16 degrees of yaw while it rolls a little: its true
+    poses, the projections of face-side points, of 13 other points (the landmarks) and the
+    head's silhouettes."""
+    rng = np.random.default_rng(seed)
+    radii = np.array([0.8, 1.0, 0.88])
+    d = rng.normal(size=(413, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts = (d * radii)[d[:, 2] < -0.3]  # the face side, towards the camera
+    yaw, roll = np.radians(np.linspace(0.0, 16.0, n)), np.radians(3.0 * np.sin(np.linspace(0, np.pi, n)))
+    R = np.stack([[[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]] @ np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) for a, r in zip(yaw, roll)])
+    t = np.array([0.1, -0.05, 5.0])
+    true = np.tile(np.eye(4), (n, 1, 1))
+    true[:, :3, :3], true[:, :3, 3] = R, t
+    cam = np.einsum("nij,pj->npi", R, pts) + t
+    uv = f * cam[..., :2] / cam[..., 2:] + size / 2
+    labels = np.zeros((n, size, size), np.uint8)
+    for i in range(n):  # the head's silhouette: the projected ellipsoid's box, filled as an ellipse
+        (x0, y0), (x1, y1) = uv[i].min(0), uv[i].max(0)
+        cv2.ellipse(labels[i], (int((x0 + x1) / 2), int((y0 + y1) / 2)), (int((x1 - x0) / 2), int((y1 - y0) / 2)), 0, 0, 360, LABEL_HEAD, -1)
+    return true, uv[:, 13:], uv[:, :13], labels, (f, f, size / 2, size / 2)
+
+
+def test_landmarks_in_the_adjustment_hold_the_pose_against_drifting_tracks() -> None:
+    """Chained flow tracks drift; landmarks found afresh in every frame do not. Tracks whose
+    observations slide sideways by 0.06 px a frame (1.4 px by the last) pull the poses along;
+    the landmarks, weighted as in preprocessing, pull them back to the true motion. Landmarks
+    given to the wrong frames (reversed) make it worse, not better."""
+    true, uv, marks, labels, K = _turning_head()
+    n = len(true)
+    drift = uv + np.arange(n)[:, None, None] * np.array([0.06, 0.0])
+    tracks = Tracks(drift, np.zeros(drift.shape[1], int))
+    kw = {"reference": 0, "shape_sigma": 0.0}
+    plain = estimate_head_poses(tracks, labels, K, **kw)
+    marks = marks.copy()
+    marks[5] = np.nan  # a frame without a detected face: its tracks alone place it
+    held = estimate_head_poses(tracks, labels, K, landmarks=marks, landmark_weight=30.0, **kw)
+    rot_plain, trans_plain, _ = align_poses(plain.poses, true)
+    rot_held, trans_held, _ = align_poses(held.poses, true)
+    assert trans_held.max() < 0.4 * trans_plain.max()
+    assert rot_held.max() < 0.6 * rot_plain.max()
+    assert held.points.shape == plain.points.shape  # the landmarks' points are not track points
+    assert math.isnan(plain.landmark_rms) and held.landmark_rms < 0.5
+    # Weight 0 leaves them out exactly; landmarks in the wrong frames do not help.
+    np.testing.assert_array_equal(estimate_head_poses(tracks, labels, K, landmarks=marks, landmark_weight=0.0, **kw).poses, plain.poses)
+    unseen = estimate_head_poses(tracks, labels, K, landmarks=np.full_like(marks, np.nan), landmark_weight=30.0, **kw)  # never detected
+    np.testing.assert_array_equal(unseen.poses, plain.poses)
+    assert math.isnan(unseen.landmark_rms)
+    wrong = estimate_head_poses(tracks, labels, K, landmarks=marks[::-1], landmark_weight=30.0, **kw)
+    assert align_poses(wrong.poses, true)[1].max() > trans_plain.max()
+    with pytest.raises(ValueError, match="landmarks must be"):
+        estimate_head_poses(tracks, labels, K, landmarks=marks[1:], landmark_weight=30.0, **kw)
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:

@@ -38,6 +38,8 @@ class HeadTrack:
             adjusted median).
         iterations: LM iterations.
         inlier_fraction: Observations within the Huber threshold.
+        landmark_rms: RMS reprojection error in pixels of the landmarks that joined the
+            adjustment (NaN when none did); ``rms`` and ``median`` count them as well.
     """
 
     poses: np.ndarray
@@ -49,6 +51,7 @@ class HeadTrack:
     median: float
     iterations: int
     inlier_fraction: float
+    landmark_rms: float = float("nan")
 
 
 def head_boxes(labels: np.ndarray) -> np.ndarray:
@@ -248,6 +251,8 @@ def estimate_head_poses(
     reference: int = -1,
     smooth_sigma: float = 0.0,
     shape_sigma: float = 0.05,
+    landmarks: np.ndarray | None = None,
+    landmark_weight: float = 0.0,
     iterations: int = 30,
     progress: Callable[[int, float], None] | None = None,
 ) -> HeadTrack:
@@ -262,6 +267,12 @@ def estimate_head_poses(
             least 6 tracked points.
         smooth_sigma: Temporal smoothing of the result in frames (0: none).
         shape_sigma: Weight of the ellipsoid shape prior (see :func:`bundle_adjust`); 0 disables it.
+        landmarks: ``(N, L, 2)`` detected positions (centre convention, NaN where not found) of
+            face landmarks that move rigidly with the head (nose, eye corners): each joins the
+            adjustment as one more track, a canonical point observed in every frame it was
+            found. Unlike the chained flow tracks they do not drift; unlike them, they are few.
+        landmark_weight: Weight of one landmark observation against one track observation (0: the
+            landmarks are left out).
         iterations: Bundle-adjustment iterations.
         progress: Called per LM iteration as ``progress(iteration, rms)``.
 
@@ -288,7 +299,12 @@ def estimate_head_poses(
     t = np.zeros((n, 3))
     t[reference] = ((0.5 * (x0 + x1) - cx) / fx * z0, (0.5 * (y0 + y1) - cy) / fy * z0, z0)
     uv = tracks.uv
-    obs = tracks.observed
+    n_tracks = uv.shape[1]
+    if landmarks is not None and landmark_weight > 0:
+        if landmarks.shape[0] != n or landmarks.shape[-1] != 2:
+            raise ValueError(f"landmarks must be ({n}, L, 2); got {landmarks.shape}")
+        uv = np.concatenate([uv, np.where(np.isfinite(landmarks).all(-1, keepdims=True), landmarks, np.nan)], axis=1)
+    obs = np.isfinite(uv[..., 0])
     points = np.full((uv.shape[1], 3), np.nan)
 
     def seed(i: int) -> None:
@@ -319,6 +335,7 @@ def estimate_head_poses(
     good[reference] = True
     sub = np.flatnonzero(good)
     seen_points = np.isfinite(points[:, 0]) & obs[sub].any(0)
+    weights = np.where(np.arange(uv.shape[1]) < n_tracks, 1.0, landmark_weight)[seen_points]
     result = bundle_adjust(
         torch.from_numpy(R[sub]),
         torch.from_numpy(t[sub]),
@@ -328,6 +345,7 @@ def estimate_head_poses(
         fixed_frame=int(np.searchsorted(sub, reference)),
         shape_radii=torch.from_numpy(radii) if shape_sigma > 0 else None,
         shape_sigma=shape_sigma,
+        point_weights=None if uv.shape[1] == n_tracks else torch.from_numpy(weights),
         iterations=iterations,
         progress=progress,
     )
@@ -336,6 +354,13 @@ def estimate_head_poses(
     if not good.all():
         Rb, tb = _interpolate_poses(Rb, tb, good)
     Xb = result.points.numpy()
+    X_all = _scatter(seen_points, Xb)
+    landmark_rms = float("nan")
+    if uv.shape[1] > n_tracks:
+        cam = np.einsum("nij,pj->npi", Rb, X_all[n_tracks:]) + tb[:, None]
+        err = np.linalg.norm(project_points(cam, intrinsics) - uv[:, n_tracks:], axis=-1)[good]
+        err = err[np.isfinite(err)]  # frames without the landmark, and landmarks never seen
+        landmark_rms = float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, :3, :3] = Rb
     poses[:, :3, 3] = tb
@@ -346,7 +371,7 @@ def estimate_head_poses(
     poses[:, :3, :3] = poses[:, :3, :3] @ M.T
     return HeadTrack(
         poses=poses,
-        points=_scatter(seen_points, Xb @ M.T),
+        points=X_all[:n_tracks] @ M.T,
         radii=radii,
         reference=reference,
         rms_before=result.rms_before,
@@ -354,6 +379,7 @@ def estimate_head_poses(
         median=result.median,
         iterations=result.iterations,
         inlier_fraction=result.inlier_fraction,
+        landmark_rms=landmark_rms,
     )
 
 

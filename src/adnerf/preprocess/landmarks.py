@@ -52,6 +52,8 @@ __all__ = [
     "BROWS",
     "NOSE",
     "NOSE_BASE",
+    "POSE_LANDMARKS",
+    "pose_landmarks",
     "EYES",
     "MOUTH",
     "INNER_LIPS",
@@ -61,6 +63,24 @@ __all__ = [
 N_LANDMARKS = 68
 JAW, BROWS, NOSE, EYES, MOUTH, INNER_LIPS = slice(0, 17), slice(17, 27), slice(27, 36), slice(36, 48), slice(48, 68), slice(60, 68)
 NOSE_BASE = 33
+# Landmarks that move with the skull, not with the expression: the nose (27-35) and the eyes'
+# corners (36, 39, 42, 45). They join the head-pose bundle adjustment (PreprocessConfig.pose_landmarks).
+POSE_LANDMARKS = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)
+
+
+def pose_landmarks(landmarks: np.ndarray, detected: np.ndarray) -> np.ndarray:
+    """``(N, 13, 2)``: the :data:`POSE_LANDMARKS` of the frames where the detector found the face,
+    NaN in the frames :func:`track_faces` filled in (a guess between neighbours is no measurement).
+
+    Args:
+        landmarks: ``(N, 68, 2)`` landmarks (pixel centres at ``+0.5``).
+        detected: ``(N,)`` bool, whether the detector found the face in each frame.
+    """
+    if landmarks.shape[1:] != (N_LANDMARKS, 2) or detected.shape != landmarks.shape[:1]:
+        raise ValueError(f"pose_landmarks: landmarks {landmarks.shape} and detected {detected.shape} do not match")
+    return np.where(detected[:, None, None], landmarks[:, list(POSE_LANDMARKS)], np.nan)
+
+
 _RIGID = np.r_[17:48]  # brows, nose, eyes: smoothed over time
 
 

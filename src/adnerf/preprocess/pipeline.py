@@ -55,7 +55,13 @@ from ..model.data import (
 from ..outputs import OutputError, check_folder_output
 from .clothes import complete_torso
 from .headpose import project_points
-from .landmarks import NOSE_BASE, eye_centres_px, eye_openness, mouth_centres
+from .landmarks import (
+    NOSE_BASE,
+    eye_centres_px,
+    eye_openness,
+    mouth_centres,
+    pose_landmarks,
+)
 from .parsing import JAW_MARGIN, layer_check, split_at_landmarks, torso_check
 
 __all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "step_bars", "STEPS"]
@@ -105,6 +111,10 @@ class PreprocessConfig:
         min_face_fraction: Fewest frames, as a fraction, that must show a face.
         extend_passes: Passes of re-observing tracks against their seed frames (0: chained tracks only).
         shape_sigma: Weight of the ellipsoid prior in bundle adjustment (0: none).
+        pose_landmarks: Weight of one rigid face landmark's observation (nose and eye corners,
+            :data:`.landmarks.POSE_LANDMARKS`) against one flow track's in the head-pose bundle
+            adjustment (0: the tracks alone; unused with ``face="none"``). The tracks are chained
+            from frame to frame and drift; the landmarks are found afresh in every frame.
         smooth_sigma: Temporal smoothing of the poses in frames.
         pose_segment: Longest stretch of frames solved in one bundle adjustment; longer clips are
             solved in overlapping segments joined by similarity alignment (the adjustment's cost
@@ -125,6 +135,7 @@ class PreprocessConfig:
     min_face_fraction: float = 0.5
     extend_passes: int = 2
     shape_sigma: float = 0.0
+    pose_landmarks: float = 30.0
     smooth_sigma: float = 0.0
     pose_segment: int = 300
     pose_overlap: int = 60
@@ -158,6 +169,8 @@ class PreprocessConfig:
             raise PreprocessError(f"--focal must be positive; got {self.focal}")
         if not 2 <= self.pose_overlap < self.pose_segment:
             raise PreprocessError(f"pose_overlap must lie in [2, pose_segment); got {self.pose_overlap} and {self.pose_segment}")
+        if not (np.isfinite(self.pose_landmarks) and self.pose_landmarks >= 0):
+            raise PreprocessError(f"pose_landmarks must be a finite weight >= 0; got {self.pose_landmarks}")
         if not 0.0 < self.test_fraction < 0.5:
             raise PreprocessError(f"--test-fraction must lie in (0, 0.5); got {self.test_fraction}")
 
@@ -168,7 +181,7 @@ _STEP_KEYS = {
     "features": ("features",),
     "parse": ("parser", "min_face_fraction"),
     "face": ("face", "cut", "clothes"),
-    "pose": ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "smooth_sigma", "pose_segment", "pose_overlap"),
+    "pose": ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "pose_landmarks", "smooth_sigma", "pose_segment", "pose_overlap"),
     "plate": (),
     "write": ("test_fraction",),
 }
@@ -386,6 +399,7 @@ def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> 
             f"{video}: the face detector ({detector.name}) found a face in only {found} of {n} frames ({found / n:.0%}); at least {config.min_face_fraction:.0%} are needed (or --face none)"
         )
     work.save("landmarks", track.landmarks)
+    work.save("face_detected", track.detected)  # the pose step weighs only landmarks the detector found
     resplit = not parser_cut and config.cut == "jaw"  # the parser cut at a row: the mouth and chin may lie below it
     layers = split_at_landmarks(labels, track.landmarks) if resplit else labels
     clothes = None
@@ -430,14 +444,18 @@ def _segments(n: int, length: int, overlap: int) -> list[tuple[int, int]]:
     return [(a, a + length) for a in starts]
 
 
-def _pose_segment(frames: np.ndarray, labels: np.ndarray, limits: np.ndarray | None, K: tuple[float, float, float, float], config: PreprocessConfig, bar: Bar, name: str) -> tuple:
-    """Tracks, bundle adjustment and re-observation passes on one segment of the clip."""
+def _pose_segment(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray | None, detected: np.ndarray | None, K: tuple[float, float, float, float], config: PreprocessConfig, bar: Bar, name: str) -> tuple:
+    """Tracks, bundle adjustment and re-observation passes on one segment of the clip
+    (``landmarks`` ``(n, 68, 2)`` and ``detected`` ``(n,)``: the face step's, or both ``None``)."""
     from .headpose import estimate_head_poses
     from .tracking import TrackConfig, extend_tracks, track_points
 
     track_cfg = TrackConfig(flow=config.flow)
+    # With landmarks, the rigid region never reaches below the nose base.
+    limits = None if landmarks is None else landmarks[:, NOSE_BASE, 1]
     tracks = track_points(frames, labels, track_cfg, progress=lambda d, t: bar(f"pose: tracks{name}", d, t), limits=limits)
-    kw = dict(head_width=config.head_width, shape_sigma=config.shape_sigma)
+    rigid = None if landmarks is None or detected is None else pose_landmarks(landmarks, detected)
+    kw = dict(head_width=config.head_width, shape_sigma=config.shape_sigma, landmarks=rigid, landmark_weight=config.pose_landmarks)
     est = estimate_head_poses(tracks, labels, K, **kw)
     chained_obs = int(tracks.observed.sum())
     for k in range(config.extend_passes):
@@ -460,15 +478,14 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
     frames, labels = work.load("frames"), work.load("parsing")
     info = work.load_json("decode")
     K = _intrinsics(config, info["width"], info["height"])
-    # With landmarks, the rigid region never reaches below the nose base.
     landmarks = _landmarks(work, config)
-    limits = None if landmarks is None else landmarks[:, NOSE_BASE, 1]
+    detected = None if landmarks is None else work.load("face_detected")
     n = len(frames)
     spans = _segments(n, config.pose_segment, config.pose_overlap)
     results = []
     for k, (a, b) in enumerate(spans):
         name = "" if len(spans) == 1 else f" {k + 1}/{len(spans)}"
-        results.append(_pose_segment(frames[a:b], labels[a:b], None if limits is None else limits[a:b], K, config, bar, name))
+        results.append(_pose_segment(frames[a:b], labels[a:b], None if landmarks is None else landmarks[a:b], None if detected is None else detected[a:b], K, config, bar, name))
     poses, joints = chain_segments([(a, est.poses) for (a, _), (est, _, _) in zip(spans, results)], n)
     poses = smooth_poses(poses, config.smooth_sigma)
     work.save("poses", poses)
@@ -484,6 +501,8 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
         "reprojection_median_px": float(np.median([est.median for est, _, _ in results])),
         "reprojection_rms_initial_px": float(np.sqrt(np.sum(obs * np.array([est.rms_before for est, _, _ in results]) ** 2) / obs.sum())),
         "inlier_fraction": float(np.sum(obs * np.array([est.inlier_fraction for est, _, _ in results])) / obs.sum()),
+        "landmark_weight": config.pose_landmarks if landmarks is not None else 0.0,
+        "landmark_rms_px": None if landmarks is None or config.pose_landmarks <= 0 else float(np.sqrt(np.mean([est.landmark_rms**2 for est, _, _ in results]))),
         "ba_iterations": int(max(est.iterations for est, _, _ in results)),
         "reference_frame": int(results[0][0].reference),
     }
