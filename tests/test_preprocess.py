@@ -393,22 +393,9 @@ def test_head_pose_gauge_is_the_mean_orientation() -> None:
     """Single-segment path: tracks of points on an ellipsoidal head turning by 0..16 degrees of
     yaw, anchored at frame 0 (8 degrees off the mean). The written poses' mean rotation is the
     identity, the relative motion is the true one, and points and poses still reproject."""
-    rng = np.random.default_rng(0)
-    n, size, f = 24, 128, 170.0
-    radii = np.array([0.8, 1.0, 0.88])
-    d = rng.normal(size=(400, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    pts = (d * radii)[d[:, 2] < -0.3]  # the face side, towards the camera
-    yaw = np.radians(np.linspace(0.0, 16.0, n))
-    R = np.stack([[[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]] for a in yaw])
-    t = np.array([0.1, -0.05, 5.0])
-    cam = np.einsum("nij,pj->npi", R, pts) + t
-    uv = f * cam[..., :2] / cam[..., 2:] + size / 2
-    labels = np.zeros((n, size, size), np.uint8)
-    for i in range(n):  # the head's silhouette: the projected ellipsoid's box, filled as an ellipse
-        (x0, y0), (x1, y1) = uv[i].min(0), uv[i].max(0)
-        cv2.ellipse(labels[i], (int((x0 + x1) / 2), int((y0 + y1) / 2)), (int((x1 - x0) / 2), int((y1 - y0) / 2)), 0, 0, 360, LABEL_HEAD, -1)
-    est = estimate_head_poses(Tracks(uv, np.zeros(len(pts), int)), labels, (f, f, size / 2, size / 2), reference=0, shape_sigma=0.0)
+    true, pts, uv, labels, K = _turning_head()
+    n, f, size, R = len(true), K[0], 2 * K[2], true[:, :3, :3]
+    est = estimate_head_poses(Tracks(uv, np.zeros(len(pts), int)), labels, K, reference=0, shape_sigma=0.0)
     Re = est.poses[:, :3, :3]
     assert rotation_angle_deg(mean_rotation(Re)) < 1e-6
     assert abs(rotation_angle_deg(Re[0]) - 8.0) < 0.5  # frame 0 lies 8 degrees from the mean
@@ -418,17 +405,18 @@ def test_head_pose_gauge_is_the_mean_orientation() -> None:
     assert np.abs(f * q[..., :2] / q[..., 2:] + size / 2 - uv).max() < 0.05
 
 
-def _turning_head(n: int = 24, size: int = 128, f: float = 170.0, seed: int = 0) -> tuple:
-    """An ellipsoidal head turning by 0..16 degrees of yaw while it rolls a little: its true
-    poses, the projections of face-side points, of 13 other points (the landmarks) and the
-    head's silhouettes."""
-    rng = np.random.default_rng(seed)
+def _turning_head(points: int = 400, roll: float = 0.0, n: int = 24, size: int = 128, f: float = 170.0) -> tuple:
+    """An ellipsoidal head turning by 0..16 degrees of yaw (and rolling by ``roll`` degrees times
+    a half sine wave), seen by a pinhole camera: its true poses ``(n, 4, 4)``, the canonical points
+    on its face side ``(P, 3)`` (of ``points`` drawn on the whole ellipsoid), their projections
+    ``(n, P, 2)``, the head's silhouettes and the intrinsics."""
+    rng = np.random.default_rng(0)
     radii = np.array([0.8, 1.0, 0.88])
-    d = rng.normal(size=(413, 3))
+    d = rng.normal(size=(points, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     pts = (d * radii)[d[:, 2] < -0.3]  # the face side, towards the camera
-    yaw, roll = np.radians(np.linspace(0.0, 16.0, n)), np.radians(3.0 * np.sin(np.linspace(0, np.pi, n)))
-    R = np.stack([[[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]] @ np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) for a, r in zip(yaw, roll)])
+    yaw, rol = np.radians(np.linspace(0.0, 16.0, n)), np.radians(roll * np.sin(np.linspace(0, np.pi, n)))
+    R = np.stack([[[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]] @ np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) for a, r in zip(yaw, rol)])
     t = np.array([0.1, -0.05, 5.0])
     true = np.tile(np.eye(4), (n, 1, 1))
     true[:, :3, :3], true[:, :3, 3] = R, t
@@ -438,7 +426,7 @@ def _turning_head(n: int = 24, size: int = 128, f: float = 170.0, seed: int = 0)
     for i in range(n):  # the head's silhouette: the projected ellipsoid's box, filled as an ellipse
         (x0, y0), (x1, y1) = uv[i].min(0), uv[i].max(0)
         cv2.ellipse(labels[i], (int((x0 + x1) / 2), int((y0 + y1) / 2)), (int((x1 - x0) / 2), int((y1 - y0) / 2)), 0, 0, 360, LABEL_HEAD, -1)
-    return true, uv[:, 13:], uv[:, :13], labels, (f, f, size / 2, size / 2)
+    return true, pts, uv, labels, (f, f, size / 2, size / 2)
 
 
 def test_landmarks_in_the_adjustment_hold_the_pose_against_drifting_tracks() -> None:
@@ -446,7 +434,8 @@ def test_landmarks_in_the_adjustment_hold_the_pose_against_drifting_tracks() -> 
     observations slide sideways by 0.06 px a frame (1.4 px by the last) pull the poses along;
     the landmarks, weighted as in preprocessing, pull them back to the true motion. Landmarks
     given to the wrong frames (reversed) make it worse, not better."""
-    true, uv, marks, labels, K = _turning_head()
+    true, _, seen, labels, K = _turning_head(points=413, roll=3.0)
+    uv, marks = seen[:, 13:], seen[:, :13]  # 13 of the points are the landmarks
     n = len(true)
     drift = uv + np.arange(n)[:, None, None] * np.array([0.06, 0.0])
     tracks = Tracks(drift, np.zeros(drift.shape[1], int))
