@@ -345,7 +345,7 @@ def estimate_head_poses(
         fixed_frame=int(np.searchsorted(sub, reference)),
         shape_radii=torch.from_numpy(radii) if shape_sigma > 0 else None,
         shape_sigma=shape_sigma,
-        point_weights=None if uv.shape[1] == n_tracks else torch.from_numpy(weights),
+        point_weights=torch.from_numpy(weights),
         iterations=iterations,
         progress=progress,
     )

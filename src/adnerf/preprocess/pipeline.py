@@ -470,6 +470,13 @@ def _pose_segment(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray 
     return est, tracks, chained_obs
 
 
+def _landmark_rms(per_segment: list[float]) -> float | None:
+    """The segments' landmark RMS errors pooled (``None`` where no segment had landmarks in its
+    adjustment: none given, weight 0, or no face detected; JSON has no NaN)."""
+    finite = [r for r in per_segment if np.isfinite(r)]
+    return float(np.sqrt(np.mean(np.square(finite)))) if finite else None
+
+
 def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
     from .headpose import chain_segments, smooth_poses
 
@@ -502,7 +509,7 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
         "reprojection_rms_initial_px": float(np.sqrt(np.sum(obs * np.array([est.rms_before for est, _, _ in results]) ** 2) / obs.sum())),
         "inlier_fraction": float(np.sum(obs * np.array([est.inlier_fraction for est, _, _ in results])) / obs.sum()),
         "landmark_weight": config.pose_landmarks if landmarks is not None else 0.0,
-        "landmark_rms_px": None if landmarks is None or config.pose_landmarks <= 0 else float(np.sqrt(np.mean([est.landmark_rms**2 for est, _, _ in results]))),
+        "landmark_rms_px": _landmark_rms([est.landmark_rms for est, _, _ in results]),
         "ba_iterations": int(max(est.iterations for est, _, _ in results)),
         "reference_frame": int(results[0][0].reference),
     }
