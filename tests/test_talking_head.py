@@ -28,7 +28,6 @@ from adnerf.synth import SynthConfig, synthesize
 
 TINY = SynthConfig(seconds=1.6, size=32, voice="formant", seed=3)
 TINY_TRAIN = TrainConfig(head_iters=24, torso_iters=12, rays=128, log_every=4, checkpoint_every=8)
-HALF = 2.0**-12 + 1e-6  # rounding of a value in [0, 1] to float16, and of the render's own float32
 
 
 @pytest.fixture(scope="module")
@@ -224,11 +223,12 @@ def test_render_takes_precomputed_feature_windows(tiny: Path, tiny_run: Path, tm
 
 @pytest.mark.parametrize("head_in_front", [True, False])
 def test_stage_two_trains_the_frame_the_renderer_draws(tiny: Path, tiny_run: Path, tmp_path: Path, head_in_front: bool) -> None:
-    # Stage 2 composites the torso it trains with the frozen head's cached renders; in either
-    # order of the layers that is the frame render_frame draws at the drawn pixels.
+    # Stage 2 composites the torso it trains with the frozen head rendered at its own rays; in
+    # either order of the layers that is the frame render_frame draws at the drawn pixels.
     from adnerf.compositor import Layer, over
+    from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
     from adnerf.model.talking_head import render_frame, render_layers, render_on_plate
-    from adnerf.model.train import Trainer
+    from adnerf.model.train import Trainer, behind_chin
 
     run = load_run(tiny_run)
     ds = load_dataset(tiny)
@@ -240,33 +240,63 @@ def test_stage_two_trains_the_frame_the_renderer_draws(tiny: Path, tiny_run: Pat
     assert 0 < in_box.float().mean() < 1
     with torch.no_grad():
         codes = tr.model.frame_codes(tr.windows)
-    heads = tr.head_renders(in_box, codes)
-    assert (tmp_path / "head_renders.pt").exists()
     black = torch.zeros(ds.meta.height, ds.meta.width, 3)
+    labels = torch.as_tensor(ds.parsing).reshape(ds.meta.n_frames, -1)
     for f in ds.meta.train[:: max(1, len(ds.meta.train) // 4)]:
-        # The cache: the head alone, premultiplied, where stage 2 draws rays (in half precision,
-        # HALF of rounding); nothing elsewhere.
-        alone = render_frame(tr.model, tr.camera, ds.head_pose(f), codes[f], black, layers=("head",))
-        need = in_box | tr.is_torso[f]
-        torch.testing.assert_close(heads.rgb[f, need], alone.rgb.reshape(-1, 3)[need], rtol=0, atol=HALF)
-        torch.testing.assert_close(heads.opacity[f, need], alone.head_opacity.reshape(-1)[need], rtol=0, atol=HALF)
-        assert not heads.opacity[f, ~need].any()
-
         pix = torch.nonzero(in_box)[:, 0]
         cond = tr.condition(f, codes[f], ds.head_pose(f))
+        # The head at the step's rays: the head alone, premultiplied, as a whole frame draws it.
+        alone = render_frame(tr.model, tr.camera, ds.head_pose(f), codes[f], black, layers=("head",))
+        head = tr.frozen_head(pix, cond)
+        torch.testing.assert_close(head.rgb, alone.rgb.reshape(-1, 3)[pix], rtol=0, atol=1e-5)
+        torch.testing.assert_close(head.opacity, alone.head_opacity.reshape(-1)[pix], rtol=0, atol=1e-5)
         tr.model.eval()
-        out, target, mask, held = tr.torso_part(f, pix, cond, Layer(heads.rgb[f, pix], heads.opacity[f, pix]), jitter=False)
+        out, target, mask, held = tr.torso_part(f, pix, cond, jitter=False)
         want = render_on_plate(tr.model, tr.rays[pix], cond, tr.plate[pix])
-        torch.testing.assert_close(out.final.rgb.detach().float(), want, rtol=0, atol=2 * HALF)  # the head's colour and opacity rounded
+        torch.testing.assert_close(out.final.rgb.detach().float(), want, rtol=0, atol=1e-5)
         each = render_layers(tr.model, tr.rays[pix], cond)
         torch.testing.assert_close(out.final.opacity.detach().float(), each["torso"].opacity, rtol=0, atol=1e-5)  # the torso's own
         flipped = over(each["torso"], over(each["head"], Layer.opaque(tr.plate[pix]))) if head_in_front else over(each["head"], over(each["torso"], Layer.opaque(tr.plate[pix])))
         assert (flipped.rgb - want).abs().max() > 0.02  # the two orders differ on these pixels
-        assert torch.equal(target, tr.frames[f, pix]) and torch.equal(mask, tr.is_torso[f, pix])
+        true = torch.as_tensor(ds.frames[f]).reshape(-1, 3)[pix].float() / 255.0
+        assert torch.equal(target, true) and torch.equal(mask, labels[f, pix] == LABEL_TORSO)
         # Behind the chin, the torso's opacity is left free; in front of the head, held to the parsing.
-        assert torch.equal(held, ~tr.reach[f, pix]) if head_in_front else held is None
-    if head_in_front:
-        assert tr.reach.any() and not (tr.reach & ~tr.is_head).any()
+        if head_in_front:
+            reach = behind_chin(labels == LABEL_HEAD, labels == LABEL_TORSO, ds.meta.height, ds.meta.width)
+            assert torch.equal(held, ~reach[f, pix]) and reach.any()
+        else:
+            assert held is None
+    if head_in_front:  # the packed masks read back as the dense ones, a frame at a time and per ray
+        assert torch.equal(torch.stack([tr.reach.row(f) for f in range(ds.meta.n_frames)]), reach)
+        frames = torch.randint(ds.meta.n_frames, (500,))
+        pixels = torch.randint(ds.meta.height * ds.meta.width, (500,))
+        assert torch.equal(tr.reach.at(frames, pixels), reach[frames, pixels])
+
+
+def test_training_holds_a_clip_as_its_uint8_frames_and_labels(tiny: Path, tiny_run: Path, tmp_path: Path) -> None:
+    # Minutes of footage must fit: per frame the trainer keeps the uint8 frame and labels (the
+    # dataset's own memory on the CPU) and a bit a pixel per mask, no float copy of the clip and
+    # no per-frame head renders (float32 frames alone would be 12 bytes a pixel).
+    from adnerf.model.train import Trainer
+
+    run, ds = load_run(tiny_run), load_dataset(tiny)
+    tr = Trainer(tmp_path, ds, run.model.config, run.train_config, "cpu", progress=False)
+    assert tr.frames.dtype == torch.uint8 and tr.labels.dtype == torch.uint8
+    assert tr.frames.data_ptr() == ds.frames.ctypes.data and tr.labels.data_ptr() == ds.parsing.ctypes.data  # shared, not copied
+    tr.reach  # stage 2's mask, made
+    pixels = ds.meta.height * ds.meta.width
+    held = tr.frame_bytes()
+    assert set(held) == {"frames", "labels", "in_head_box", "reach"}
+    assert held["frames"] == 3 * pixels and held["labels"] == pixels
+    assert held["in_head_box"] == held["reach"] == -(-pixels // 8)
+    # The tensors the trainer holds with a frame axis are those stores and nothing else.
+    n = ds.meta.n_frames
+    per_frame = {name for name, v in vars(tr).items() if isinstance(v, torch.Tensor) and v.ndim and v.shape[0] == n and v.numel() > n}
+    assert per_frame <= {"frames", "labels", "windows"}, per_frame
+    assert tr.windows.numel() * tr.windows.element_size() // n == 16 * ds.meta.feature_dim * 4  # the audio windows: no pixels
+    # Stage 2 trains without a pass over the clip first and writes no head cache.
+    train(tiny, tmp_path / "resumed", config=replace(TINY_TRAIN, head_iters=1, torso_iters=2), progress=False)
+    assert not (tmp_path / "resumed" / "head_renders.pt").exists()
 
 
 def test_the_torso_may_reach_behind_the_chin_only() -> None:

@@ -4,8 +4,8 @@ A run folder holds ``run.json`` (format and version, the dataset's path and fing
 and training configuration, the dataset's camera and audio metadata, how it was trained:
 processes, backend, devices), ``background.png`` (the dataset's plate), ``checkpoint.pt`` (model,
 optimisers, random generator, finished steps and training seconds; written atomically),
-``log.jsonl`` (one JSON object per logged iteration) and ``head_renders.pt`` (the cached stage-1
-renders stage 2 trains against). :func:`load_run` gives a :class:`Run`; training
+and ``log.jsonl`` (one JSON object per logged iteration); a ``head_renders.pt`` of earlier
+versions (a cache of stage-1 renders) is no longer read. :func:`load_run` gives a :class:`Run`; training
 (:mod:`adnerf.model.train`) is the only writer.
 """
 

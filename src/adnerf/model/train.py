@@ -37,6 +37,7 @@ from tqdm.auto import tqdm
 
 from ..atomic import atomic_path
 from ..compositor import Composite, Layer, over
+from ..memory import require
 from ..metrics import psnr_from_mse
 from ..outputs import check_folder_output, ensure_writable
 from ..pose import HeadPose
@@ -50,9 +51,11 @@ from .data import (
     LABEL_TORSO,
     MOUTH_CROP,
     TalkingHeadDataset,
+    frame_bytes,
     load_dataset,
 )
 from .distributed import Ranks, init_ranks
+from .masks import BitRows
 from .run_folder import (
     RESUMABLE,
     Run,
@@ -152,10 +155,41 @@ NECK_BAND = 0.1
 """How far the torso may reach behind the head, as a fraction of the head label's height."""
 
 
+def head_heights(is_head: torch.Tensor, height: int) -> torch.Tensor:
+    """Rows spanned by each frame's head label ``(N,)`` int64 (0 for a frame without one), of
+    head labels ``(N, H*W)`` bool."""
+    rows = is_head.reshape(len(is_head), height, -1).any(dim=2)
+    idx = torch.arange(height, device=is_head.device)
+    top = torch.where(rows, idx, height).amin(dim=1)
+    bottom = torch.where(rows, idx, -1).amax(dim=1)
+    return torch.where(rows.any(dim=1), bottom - top + 1, 0)
+
+
+def neck_reach(heights: torch.Tensor, band: float = NECK_BAND) -> int:
+    """The reach of :func:`behind_chin` in pixels: ``band`` times the median of the frames' head
+    heights ``(N,)`` (:func:`head_heights`) over the frames that have a head, at least 1; 0 when
+    no frame has one."""
+    present = heights > 0
+    if not bool(present.any()):
+        return 0
+    return max(1, round(band * float(heights[present].float().median())))
+
+
+def near_torso(is_torso: torch.Tensor, height: int, width: int, reach: int) -> torch.Tensor:
+    """The pixels ``(N, H*W)`` bool within ``reach`` pixels (a square around each) of the frames'
+    torso pixels ``is_torso (N, H*W)``; none when ``reach`` is 0."""
+    if reach <= 0:
+        return torch.zeros_like(is_torso)
+    torso = is_torso.reshape(-1, 1, height, width).float()
+    # The square's maximum as the maximum over its rows of the maximum along each row.
+    along = F.max_pool2d(torso, (1, 2 * reach + 1), stride=1, padding=(0, reach))
+    return F.max_pool2d(along, (2 * reach + 1, 1), stride=1, padding=(reach, 0)).reshape(len(is_torso), -1) > 0
+
+
 def behind_chin(is_head: torch.Tensor, is_torso: torch.Tensor, height: int, width: int, band: float = NECK_BAND) -> torch.Tensor:
     """The head pixels where a torso drawn behind the head may be opaque: those within ``r``
     pixels (a square around each) of the frame's torso pixels, ``r`` = ``band`` times the
-    median height in rows of the frames' head labels (at least 1 pixel).
+    median height in rows of the frames' head labels (at least 1 pixel; :func:`neck_reach`).
 
     That is where the chin, which moves with the speech, covers the neck in some frames and not
     in others. Further up the torso stays transparent behind the head, so a head turned further
@@ -171,20 +205,10 @@ def behind_chin(is_head: torch.Tensor, is_torso: torch.Tensor, height: int, widt
     Returns:
         ``(N, H*W)`` bool, a subset of ``is_head``.
     """
-    rows = is_head.reshape(-1, height, width).any(dim=2)
-    present = rows.any(dim=1)
-    if not bool(present.any()):
-        return torch.zeros_like(is_head)
-    idx = torch.arange(height, device=is_head.device)
-    top = torch.where(rows, idx, height).amin(dim=1)
-    bottom = torch.where(rows, idx, -1).amax(dim=1)
-    reach = max(1, round(band * float((bottom - top + 1)[present].float().median())))
+    reach = neck_reach(head_heights(is_head, height), band)
     near = torch.zeros_like(is_head)
     for start in range(0, len(is_torso), 64):  # frames at a time: a float copy of all at once is large
-        torso = is_torso[start : start + 64].reshape(-1, 1, height, width).float()
-        # The square's maximum as the maximum over its rows of the maximum along each row.
-        along = F.max_pool2d(torso, (1, 2 * reach + 1), stride=1, padding=(0, reach))
-        near[start : start + 64] = F.max_pool2d(along, (2 * reach + 1, 1), stride=1, padding=(reach, 0)).reshape(len(torso), -1) > 0
+        near[start : start + 64] = near_torso(is_torso[start : start + 64], height, width, reach)
     return near & is_head
 
 
@@ -213,10 +237,13 @@ class Trainer:
         self.model = TalkingHead(mcfg).to(device)
         self.camera = ds.meta.camera(device=device)
         self.rays = self.camera.rays().flatten()
-        self.frames = torch.as_tensor(ds.frames, device=device).reshape(ds.meta.n_frames, -1, 3).float() / 255.0
+        # The clip stays as the dataset holds it, uint8 frames and labels (on the CPU the dataset's
+        # own memory, no copy): a step converts only its own rays (:meth:`colours`, :meth:`labelled`).
+        if torch.device(device).type == "cuda":  # the clip is copied there: refuse before a CUDA out-of-memory
+            require(frame_bytes(ds.meta) * ds.meta.n_frames, f"{ds.root}: {ds.meta.n_frames} frames of {ds.meta.width}x{ds.meta.height} (uint8 frames and labels)", available=torch.cuda.mem_get_info(torch.device(device))[0], where=f"the GPU {device}")
+        self.frames = torch.as_tensor(ds.frames, device=device).reshape(ds.meta.n_frames, -1, 3)
+        self.labels = torch.as_tensor(ds.parsing, device=device).reshape(ds.meta.n_frames, -1)
         self.plate = torch.as_tensor(ds.background, device=device).reshape(-1, 3).float() / 255.0
-        labels = torch.as_tensor(ds.parsing, device=device).reshape(ds.meta.n_frames, -1)
-        self.is_head, self.is_torso = labels == LABEL_HEAD, labels == LABEL_TORSO
         self.windows = torch.as_tensor(ds.features, device=device)
         # The frame pools stay on the CPU, as the generator does: reading a drawn frame back from
         # a GPU would wait for the work queued there at every draw.
@@ -229,9 +256,9 @@ class Trainer:
         self.pixel_index = torch.arange(ds.meta.width * ds.meta.height, device=device)
         # Every pixel's centre (column, row), for the squares around the mouth and the eyes.
         self.pixel_centres = (self.pixel_index % ds.meta.width + 0.5, self.pixel_index // ds.meta.width + 0.5)
-        # Which pixels' rays cross the head box, per frame: made on a frame's first draw and kept
-        # (crossing every pixel's ray took 4-10 ms of a 70 ms step at 256 px on 2 CPU cores; kept: 0.1 ms).
-        self.in_head_box = torch.zeros(ds.meta.n_frames, ds.meta.width * ds.meta.height, dtype=torch.bool, device=device)
+        # Which pixels' rays cross the head box, per frame: made on a frame's first draw and kept,
+        # a bit a pixel (crossing every pixel's ray costs more than a tenth of a CPU step).
+        self.in_head_box = BitRows(ds.meta.n_frames, ds.meta.width * ds.meta.height, device)
         self.boxed = torch.zeros(ds.meta.n_frames, dtype=torch.bool)
         m = self.model
         m.fit_feature_scale(self.windows[self.train_frames.to(device)])
@@ -254,10 +281,36 @@ class Trainer:
         self.samples = 0  # field evaluations (after empty-space skipping) since construction
 
     @cached_property
-    def reach(self) -> torch.Tensor:
+    def reach(self) -> BitRows:
         """Where the torso may be opaque behind the head (stage 2, head in front): :func:`behind_chin`
-        of every frame ``(N, H*W)``, made on first use."""
-        return behind_chin(self.is_head, self.is_torso, self.ds.meta.height, self.ds.meta.width)
+        of every frame, a bit a pixel, made on first use (64 frames at a time)."""
+        h, w, n = self.ds.meta.height, self.ds.meta.width, self.ds.meta.n_frames
+        chunks = [slice(start, min(start + 64, n)) for start in range(0, n, 64)]
+        reach = neck_reach(torch.cat([head_heights(self.labels[c] == LABEL_HEAD, h) for c in chunks]))
+        bits = BitRows(n, h * w, self.device)
+        for c in chunks:
+            labels = self.labels[c]
+            bits.set(c, near_torso(labels == LABEL_TORSO, h, w, reach) & (labels == LABEL_HEAD))
+        return bits
+
+    def frame_bytes(self) -> dict[str, int]:
+        """Bytes held for each frame of the clip, by store: the uint8 frames and labels, the
+        packed masks (the head box's, and behind the chin once stage 2 made it); the same for every
+        clip length, so training memory grows with the clip by this much a frame."""
+        n = self.ds.meta.n_frames
+        stores = {"frames": self.frames.numel() * self.frames.element_size(), "labels": self.labels.numel() * self.labels.element_size(), "in_head_box": self.in_head_box.nbytes}
+        if "reach" in self.__dict__:
+            stores["reach"] = self.reach.nbytes
+        return {name: size // n for name, size in stores.items()}
+
+    def colours(self, frame: int | torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
+        """True colours ``(R, 3)`` float32 in ``[0, 1]`` of pixels ``pix`` of ``frame`` (or of each
+        ray's frame ``(R,)``)."""
+        return self.frames[frame, pix].float() / 255.0
+
+    def labelled(self, label: int, frame: int | torch.Tensor, pix: torch.Tensor | None = None) -> torch.Tensor:
+        """Whether pixels ``pix`` (default: all) of ``frame`` (or of each ray's frame) carry ``label``, bool."""
+        return (self.labels[frame] if pix is None else self.labels[frame, pix]) == label
 
     # ---- checkpoints
     def save(self) -> None:
@@ -364,9 +417,9 @@ class Trainer:
         ``pose``), kept from the frame's first draw."""
         if not self.boxed[frame]:
             near, far = self.model.layers["head"].crossing(self.rays, pose)
-            self.in_head_box[frame] = far > near
+            self.in_head_box.set(frame, far > near)
             self.boxed[frame] = True
-        return torch.nonzero(self.in_head_box[frame])[:, 0]
+        return torch.nonzero(self.in_head_box.row(frame))[:, 0]
 
     def mouth_pixels(self, pose) -> torch.Tensor:
         """Flat indices of the pixels in the square of side ``MOUTH_CROP`` units around the mouth."""
@@ -391,7 +444,7 @@ class Trainer:
     def head_target(self, frame: int | torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
         """Stage-1 target colours ``(R, 3)`` of pixels ``pix`` of ``frame`` (or of each ray's frame
         ``(R,)``): the frame on head pixels, the plate elsewhere."""
-        return torch.where(self.is_head[frame, pix, None], self.frames[frame, pix], self.plate[pix])
+        return torch.where(self.labelled(LABEL_HEAD, frame, pix)[:, None], self.colours(frame, pix), self.plate[pix])
 
     def maybe_update_occupancy(self, layer: str, step: int, iters: int, cond: FrameCondition) -> None:
         """Every ``occupancy_every`` iterations from ``occupancy_start``, re-estimate the layer's grid."""
@@ -460,7 +513,7 @@ class Trainer:
         with mixed_precision(self.device, self.tcfg.amp):
             out = self.model.layers["head"].render(self.rays[pix], cond, background=self.plate[pix], jitter=True, generator=batch.generator)
         self.samples += out.samples_evaluated
-        return out, self.head_target(frame, pix), self.is_head[frame, pix], None
+        return out, self.head_target(frame, pix), self.labelled(LABEL_HEAD, frame, pix), None
 
     def eye_batch(self) -> tuple[int, torch.Tensor, FrameCondition] | None:
         """For heads that blink: ``eye_rays * rays`` more rays around the eyes of a frame drawn
@@ -501,38 +554,21 @@ class Trainer:
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
-    @torch.no_grad()
-    def head_renders(self, in_box: torch.Tensor, codes: torch.Tensor) -> Layer:
-        """The stage-1 head of every frame as a premultiplied layer (``rgb (N, H*W, 3)``, ``opacity
-        (N, H*W)``), cached in the run folder.
+    def frozen_head(self, pix: torch.Tensor, cond: FrameCondition) -> Layer:
+        """The stage-1 head along pixels ``pix`` ``(R,)`` under ``cond`` (one frame's, or each
+        ray's) as a premultiplied layer (``rgb (R, 3)``, ``opacity (R,)``, float32), without
+        gradients.
 
-        Only the pixels stage 2 draws rays at (``in_box (H*W,)``: rays that cross the torso box,
-        and the frame's torso pixels) are rendered, under the frames' audio codes ``codes (N,
-        audio_dim)``; the others hold no head (opacity 0), which stage 2 never reads.
+        Stage 2 renders it for its own rays at each step: the head is frozen, so this is the value
+        a cache of every frame's head render would hold, for no memory and no pass over the clip
+        before the first step (rays of a step are far fewer than a clip's pixels).
         """
-        path = self.root / "head_renders.pt"
-        if path.exists():
-            cached = torch.load(path, map_location=self.device, weights_only=False)
-            if cached["head_step"] == self.head_step and "opacity" in cached:  # older caches held the head over the plate
-                return Layer(cached["rgb"].float(), cached["opacity"].float())
-        self.model.eval()
-        n, hw = self.frames.shape[:2]
-        rgb, opacity = torch.zeros(n, hw, 3, device=self.device), torch.zeros(n, hw, device=self.device)
-        for frame in tqdm(self.ds.meta.train, desc="head renders", unit="frame", disable=not self.progress, dynamic_ncols=True):
-            pix = torch.nonzero(in_box | self.is_torso[frame])[:, 0]
-            cond = self.condition(frame, codes[frame], self.ds.head_pose(frame, device=self.device))
-            head = render_layers(self.model, self.rays[pix], cond, layers=("head",), amp=self.tcfg.amp)["head"]
-            rgb[frame, pix], opacity[frame, pix] = head.rgb, head.opacity
-        rgb, opacity = rgb.half(), opacity.half()
-        if self.ranks.main:
-            save_atomic({"head_step": self.head_step, "rgb": rgb, "opacity": opacity}, path)
-        # The cache's precision from the start, so that a run resumed in stage 2 trains on the same values.
-        return Layer(rgb.float(), opacity.float())
+        return render_layers(self.model, self.rays[pix], cond, layers=("head",), amp=self.tcfg.amp)["head"]
 
-    def torso_part(self, frame: int | torch.Tensor, pix: torch.Tensor, cond: FrameCondition, head: Layer, *, jitter: bool = True, generator: "torch.Generator | Shard | None" = None) -> Part:
+    def torso_part(self, frame: int | torch.Tensor, pix: torch.Tensor, cond: FrameCondition, *, jitter: bool = True, generator: "torch.Generator | Shard | None" = None) -> Part:
         """Render stage-2 rays ``pix`` of ``frame`` (or of each ray's frame, ``(R,)``, under a
-        per-ray condition) through the torso with the frozen head ``head`` (the premultiplied
-        layer at those pixels) in the model's order.
+        per-ray condition) through the torso with the frozen head (:meth:`frozen_head` at those
+        rays) in the model's order.
 
         Returns:
             ``(render, target, torso mask, rays whose opacity the mask holds)``. The render's colours
@@ -543,18 +579,19 @@ class Trainer:
         """
         torso = self.model.layers["torso"]
         head_in_front = self.model.config.head_in_front
+        head = self.frozen_head(pix, cond)
         background = self.plate[pix] if head_in_front else over(head, Layer.opaque(self.plate[pix])).rgb
         with mixed_precision(self.device, self.tcfg.amp):
             out = torso.render(self.rays[pix], cond, background=background, jitter=jitter, generator=self.ranks.shard(self.generator) if generator is None else generator)
         self.samples += out.samples_evaluated
         if not head_in_front:
-            return out, self.frames[frame, pix], self.is_torso[frame, pix], None
+            return out, self.colours(frame, pix), self.labelled(LABEL_TORSO, frame, pix), None
 
         def under_head(c: Composite) -> Composite:
             return replace(c, rgb=over(head, Layer.opaque(c.rgb.float())).rgb)
 
         out = RenderOutput(under_head(out.coarse), None if out.fine is None else under_head(out.fine), out.samples_evaluated)
-        return out, self.frames[frame, pix], self.is_torso[frame, pix], ~self.reach[frame, pix]
+        return out, self.colours(frame, pix), self.labelled(LABEL_TORSO, frame, pix), ~self.reach.at(frame, pix)
 
     def torso_stage(self, max_steps: int | None) -> None:
         tcfg = self.tcfg
@@ -563,19 +600,18 @@ class Trainer:
         near, far = self.model.layers["torso"].crossing(self.rays)
         with torch.no_grad():
             codes = self.model.frame_codes(self.windows)
-        heads = self.head_renders(far > near, codes)
         candidates = torch.nonzero(far > near)[:, 0]
         sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
         self.model.train()
 
         def rays_of(frame: int, pose: HeadPose, n: int) -> torch.Tensor:
-            return self.pick_among(candidates, torch.nonzero(self.is_torso[frame])[:, 0], tcfg.torso_person_rays, n)
+            return self.pick_among(candidates, torch.nonzero(self.labelled(LABEL_TORSO, frame))[:, 0], tcfg.torso_person_rays, n)
 
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
             groups = self.step_frames("torso", step, tcfg.torso_iters, rays_of, lambda frames: codes[frames])
             b = self.batch_of(groups)
-            part = self.torso_part(b.frame, b.pixels, b.condition, Layer(heads.rgb[b.frame, b.pixels], heads.opacity[b.frame, b.pixels]), generator=b.generator)
+            part = self.torso_part(b.frame, b.pixels, b.condition, generator=b.generator)
             return _optimise([part], tcfg.mask_weight, self.opt_torso, self.ranks)
 
         self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
