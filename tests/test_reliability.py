@@ -363,3 +363,31 @@ def test_argument_ranges_are_checked_and_shown(capsys: pytest.CaptureFixture) ->
     assert "16 to 1024 (default: 128)" in " ".join(out.split()) and "(default: 18.0)" in out
     with pytest.raises(ValueError, match="would not fit in memory"):
         SynthConfig(seconds=600, size=1024).validate()
+
+
+def test_a_clip_too_large_for_memory_is_refused_in_one_line_before_work(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    # A clip that would not fit is refused up front with what it needs and what there is, never
+    # an out-of-memory kill part way through.
+    import adnerf.memory
+    from adnerf.io import read_video, write_video
+    from adnerf.memory import MemoryNeedError, require
+
+    n = load_dataset(scene).meta.n_frames
+    need = n * SMALL.size * SMALL.size * 4  # uint8 frames (3 bytes a pixel) and labels (1)
+    monkeypatch.setattr(adnerf.memory, "available_bytes", lambda: int(need / 0.9) + 1)
+    load_dataset(scene)  # just fits
+    monkeypatch.setattr(adnerf.memory, "available_bytes", lambda: int(need / 0.9) - 64)
+    with pytest.raises(MemoryNeedError, match=rf"{n} frames of {SMALL.size}x{SMALL.size}"):
+        load_dataset(scene)
+    _fails(["train", str(scene), "-o", str(tmp_path / "run")], "available (use a shorter clip or a smaller frame size)", capsys)
+    assert not (tmp_path / "run").exists()
+    # Decoding a video is refused from the container's frame count, before any frame is decoded.
+    video = write_video(tmp_path / "clip.mp4", np.zeros((10, 16, 16, 3), np.uint8), 25.0)
+    monkeypatch.setattr(adnerf.memory, "available_bytes", lambda: 10 * 16 * 16 * 3)
+    with pytest.raises(MemoryNeedError, match="10 frames of 16x16"):
+        read_video(video)
+    monkeypatch.setattr(adnerf.memory, "available_bytes", lambda: None)  # unknown: nothing is refused
+    assert read_video(video).frames.shape == (10, 16, 16, 3)
+    require(10**15, "anything", available=None)
+    with pytest.raises(MemoryNeedError, match="the GPU"):
+        require(10, "x", available=10, where="the GPU")

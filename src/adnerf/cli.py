@@ -162,7 +162,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "lmd_mouth_shape_px", "lmd_mouth_still_px", "mouth_open_corr", "av_offset_frames", "lpips", "lse_d", "lse_c", "lse_d_true", "lse_c_true", "train_seconds")
+    keys = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "lmd_mouth_shape_px", "lmd_mouth_still_px", "mouth_open_corr", "av_offset_frames", "mouth_open_slope", "mouth_open_std_ratio", "lpips", "lse_d", "lse_c", "lse_d_true", "lse_c_true", "train_seconds")
     table = "\n".join(f"{k:>18}: {row.get(k, row['syncnet'] if k.startswith('lse') else None)}" for k in keys) + f"\n{'contact sheet':>18}: {row['sheet']}"
     lips = row["lip_signal"]
 
@@ -264,12 +264,13 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from .audio.features import FeatureError
     from .commands.render_video import RenderError
     from .io import MediaError
+    from .memory import MemoryNeedError
     from .model.data import DatasetError
     from .model.run_folder import RunError
     from .outputs import OutputError
     from .preprocess.pipeline import PreprocessError
 
-    return (DatasetError, FeatureError, MediaError, OutputError, PreprocessError, RenderError, RunError)
+    return (DatasetError, FeatureError, MediaError, MemoryNeedError, OutputError, PreprocessError, RenderError, RunError)
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path
+from .memory import require
 
 __all__ = ["AudioTrack", "MediaError", "Video", "frame_times", "probe", "read_audio", "read_video", "write_video"]
 
@@ -197,12 +198,17 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
 
     Raises:
         MediaError: The file is missing, unreadable, has no video stream, or no frame decodes.
+        adnerf.memory.MemoryNeedError: The container's frame count says the decoded frames would
+            not fit in the memory available (checked before decoding).
     """
     av = _av()
     p = Path(path)
     with _open(p) as container:
         stream = _video_stream(p, container)
         fps = float(stream.average_rate) if stream.average_rate else 0.0
+        count = min(int(stream.frames or 0), max_frames or int(stream.frames or 0))
+        if count and stream.codec_context.width:  # the container's frame count, where it gives one
+            require(count * stream.codec_context.width * stream.codec_context.height * 3, f"{p}: {count} frames of {stream.codec_context.width}x{stream.codec_context.height} (decoded RGB)")
         frames: list[np.ndarray] = []
         times: list[float] = []
         try:
@@ -223,8 +229,11 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
             if container.streams.audio:
                 track = _decode_audio(p, container, audio_rate)
     order = np.argsort(np.asarray(times), kind="stable")
+    stacked = np.empty((len(frames), *frames[0].shape), frames[0].dtype)
+    for k, i in enumerate(order):  # each decoded frame freed once copied: the clip is held once, not twice
+        stacked[k], frames[i] = frames[i], None  # type: ignore[call-overload]
     return Video(
-        frames=np.stack([frames[i] for i in order]),
+        frames=stacked,
         timestamps=np.asarray(times, dtype=np.float64)[order],
         fps=fps,
         audio=track,

@@ -45,6 +45,7 @@ import torch
 
 from ..cameras import Camera, intrinsics_matrix
 from ..io import AudioTrack, MediaError, read_audio
+from ..memory import require
 from ..outputs import check_folder_output
 from ..pose import HeadPose
 
@@ -428,6 +429,18 @@ def read_meta(root: str | Path) -> SceneMeta:
     return meta
 
 
+def frame_bytes(meta: SceneMeta) -> int:
+    """Bytes a loaded frame holds: its uint8 RGB pixels and labels (the training data of a frame;
+    what grows with the clip)."""
+    return 4 * meta.width * meta.height
+
+
+def _fit(image: np.ndarray, shape: tuple[int, ...], path: Path) -> np.ndarray:
+    if image.shape != shape or image.dtype != np.uint8:
+        raise DatasetError(f"{path}: image of shape {image.shape} ({image.dtype}); meta.json says {shape} uint8")
+    return image
+
+
 def load_dataset(root: str | Path, *, truth: bool = True) -> TalkingHeadDataset:
     """Load and validate a dataset folder.
 
@@ -437,12 +450,18 @@ def load_dataset(root: str | Path, *, truth: bool = True) -> TalkingHeadDataset:
 
     Raises:
         DatasetError: Missing files, wrong format or version, or inconsistent shapes.
+        adnerf.memory.MemoryNeedError: The frames and labels would not fit in the memory
+            available (checked before any is read).
     """
     root = Path(root)
     meta = read_meta(root)
-    n = meta.n_frames
-    frames = np.stack([_read_png(root / "frames" / f"{i:06d}.png", True) for i in range(n)])
-    parsing = np.stack([_read_png(root / "parsing" / f"{i:06d}.png", False) for i in range(n)])
+    n, h, w = meta.n_frames, meta.height, meta.width
+    require(frame_bytes(meta) * n, f"{root}: {n} frames of {w}x{h} (uint8 frames and labels)")
+    frames = np.empty((n, h, w, 3), np.uint8)  # filled in place: no list of frames beside the array
+    parsing = np.empty((n, h, w), np.uint8)
+    for i in range(n):
+        frames[i] = _fit(_read_png(root / "frames" / f"{i:06d}.png", True), (h, w, 3), root / "frames" / f"{i:06d}.png")
+        parsing[i] = _fit(_read_png(root / "parsing" / f"{i:06d}.png", False), (h, w), root / "parsing" / f"{i:06d}.png")
     background = _read_png(root / "background.png", True)
     for name in ("poses.npy", "features.npy", "audio.wav"):
         if not (root / name).exists():

@@ -1,0 +1,57 @@
+"""How much memory a clip needs, and a refusal before work that would not fit.
+
+A clip of minutes at 512 px is gigabytes even as uint8 frames; a process that runs out of memory is
+killed by the kernel with no word. Commands that hold a whole clip check first
+(:func:`require`): what they would hold against what the machine has available, and refuse in one
+line that gives both.
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["MemoryNeedError", "available_bytes", "gib", "require"]
+
+HEADROOM = 0.9
+"""Share of the available memory a clip may take: the rest is for the model, the batch and the
+libraries."""
+
+
+class MemoryNeedError(ValueError):
+    """A clip would not fit in the memory this machine (or device) has available."""
+
+
+def gib(n: float) -> str:
+    """Bytes as ``"1.23 GiB"``."""
+    return f"{n / 2**30:.2f} GiB"
+
+
+def available_bytes() -> int | None:
+    """Memory available to a new allocation without swapping: Linux's ``MemAvailable``
+    (``/proc/meminfo``), else free physical pages (``os.sysconf``); ``None`` when unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def require(need: int, what: str, *, available: int | None = None, where: str = "this machine") -> None:
+    """Raise :class:`MemoryNeedError` when ``need`` bytes exceed :data:`HEADROOM` of the memory
+    available (``available``, default :func:`available_bytes`; nothing is checked when unknown).
+
+    Args:
+        need: Bytes the work would hold.
+        what: What needs them, for the message (e.g. ``"data/me: 9000 frames of 512x512"``).
+        available: Bytes available (a GPU's free memory, say); ``None``: this machine's.
+        where: Whose memory ``available`` is, for the message.
+    """
+    have = available_bytes() if available is None else available
+    if have is not None and need > HEADROOM * have:
+        raise MemoryNeedError(f"{what} need {gib(need)} of memory; {where} has {gib(have)} available (use a shorter clip or a smaller frame size)")
