@@ -17,6 +17,7 @@ from adnerf.bench.voices import mouth_follow
 from adnerf.cli import main
 from adnerf.evaluation.evaluate import head_metrics
 from adnerf.evaluation.landmark_metrics import (
+    amplitude,
     av_offset,
     landmark_metrics,
     mouth_opening,
@@ -70,6 +71,20 @@ def test_landmark_metrics_known_answers() -> None:
     assert landmark_metrics(early, true).av_offset_frames == -2
     k, c = av_offset(mouth_opening(late), mouth_opening(true))
     assert k == 2 and c == pytest.approx(1.0)
+    # The amplitude: the truth against itself 1 and 1; a mouth that opens half as wide (about its
+    # own mean) 0.5 and 0.5 whatever its correlation says (1); one drawn upside down -1 and 1.
+    assert same.mouth_open_slope == pytest.approx(1.0) and same.mouth_open_std_ratio == pytest.approx(1.0)
+    half = true.copy()
+    o = mouth_opening(true)
+    half[:, [67, 66, 65], 1] -= 0.5 * (o - o.mean())[:, None]
+    h = landmark_metrics(half, true)
+    assert h.mouth_open_slope == pytest.approx(0.5) and h.mouth_open_std_ratio == pytest.approx(0.5) and h.mouth_open_corr == pytest.approx(1.0)
+    assert amplitude(-o, o) == pytest.approx((-1.0, 1.0))
+    # Noise on a full-width mouth keeps the slope near 1 and raises the ratio: the two differ.
+    noisy = o + np.random.default_rng(0).normal(0, o.std(), len(o))
+    slope, ratio = amplitude(noisy, o)
+    assert abs(slope - 1.0) < 0.35 and ratio > 1.2
+    assert all(np.isnan(amplitude(o, np.ones_like(o))))
     with pytest.raises(ValueError):
         landmark_metrics(true[:, :60], true[:, :60])
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+import resource
 import shutil
 import time
 from dataclasses import asdict
@@ -204,7 +205,7 @@ def bench_real(
     from ..evaluation.lip_signal import dataset_lip_signal
     from ..evaluation.lpips import lpips_if_available
     from ..evaluation.syncnet import load_syncnet
-    from ..model.data import load_dataset
+    from ..model.data import frame_bytes, load_dataset
     from ..model.train import TrainConfig, load_run, train
     from ..preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
@@ -301,6 +302,9 @@ def bench_real(
         "head_iters": run.train_config.head_iters,
         "torso_iters": run.train_config.torso_iters,
         "train_seconds": elapsed["head"] + elapsed["torso"],
+        "seconds_per_step": {stage: round(elapsed[stage] / max(iters, 1), 4) for stage, iters in (("head", run.train_config.head_iters), ("torso", run.train_config.torso_iters))},
+        "data_bytes_per_frame": frame_bytes(ds.meta),
+        "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),  # this process's, the training included (Linux: KiB)
         "device": device,
         "layers": report.get("layers"),
         "lip_signal": lips,
@@ -325,7 +329,7 @@ def plot_mouth_opening(row: dict, path: str | Path) -> Path:
     fig, ax = plt.subplots(figsize=(7, 3))
     if "mouth_opening_true_px" in row:
         ax.plot(row["mouth_opening_true_px"], label="true", color="black")
-        ax.plot(row["mouth_opening_render_px"], label=f"render (corr {row['mouth_open_corr']:.2f}, offset {row['av_offset_frames']} frames)", color="tab:red")
+        ax.plot(row["mouth_opening_render_px"], label=f"render (corr {row['mouth_open_corr']:.2f}, offset {row['av_offset_frames']} frames, slope {row['mouth_open_slope']:.2f})", color="tab:red")
         ax.legend(fontsize=8)
     else:
         ax.text(0.5, 0.5, "no landmarks found in enough frames", ha="center", transform=ax.transAxes)

@@ -19,6 +19,11 @@ Both need no downloaded weights: the landmarks come from the same dlib detector 
   follows the audio; the **audio-visual offset** is the shift of the render (in frames) that
   maximises that correlation: 0 when the render is in sync, ``+k`` when it moves ``k`` frames
   late.
+- **Mouth-opening amplitude**: how wide the rendered mouth opens against the truth, as the slope of
+  the rendered opening regressed on the true one (least squares, with an intercept) and as the
+  ratio of their standard deviations. 1 for both when the render opens as wide as the truth; a
+  mouth that follows the speech at half the amplitude scores 0.5 with any correlation. The slope
+  is the correlation times the ratio, so a render that opens wide out of step scores a low slope.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LandmarkMetrics", "av_offset", "landmark_metrics", "lmd", "lmd_shape", "mouth_opening", "pearson", "still_lmd"]
+__all__ = ["LandmarkMetrics", "amplitude", "av_offset", "landmark_metrics", "lmd", "lmd_shape", "mouth_opening", "pearson", "still_lmd"]
 
 MOUTH = slice(48, 68)
 INNER_PAIRS = ((61, 67), (62, 66), (63, 65))  # upper and lower inner lip, left to right
@@ -67,6 +72,20 @@ def pearson(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(a, b)[0, 1])
 
 
+def amplitude(rendered: np.ndarray, true: np.ndarray) -> tuple[float, float]:
+    """``(slope, std ratio)`` of a rendered series against the true one: the least-squares slope
+    of ``rendered`` regressed on ``true`` (with an intercept) and ``std(rendered) / std(true)``;
+    NaN for both when ``true`` is constant."""
+    r, t = np.asarray(rendered, float), np.asarray(true, float)
+    if r.shape != t.shape or r.ndim != 1:
+        raise ValueError(f"amplitude needs two series of one length; got {r.shape} and {t.shape}")
+    spread = t.std()
+    if spread == 0:
+        return float("nan"), float("nan")
+    slope = float(np.mean((r - r.mean()) * (t - t.mean())) / spread**2)
+    return slope, float(r.std() / spread)
+
+
 def av_offset(rendered: np.ndarray, true: np.ndarray, max_shift: int = 5) -> tuple[int, float]:
     """The shift ``k`` in ``[-max_shift, max_shift]`` maximising the correlation of
     ``rendered[t + k]`` with ``true[t]`` (``k > 0``: the render is late), and that correlation.
@@ -101,6 +120,9 @@ class LandmarkMetrics:
         mouth_open_corr: Correlation of the rendered and true mouth openings.
         av_offset_frames: Shift of the render that maximises that correlation (0: in sync).
         av_offset_corr: The correlation at that shift.
+        mouth_open_slope: Slope of the rendered mouth opening regressed on the true one
+            (:func:`amplitude`; 1: as wide as the truth).
+        mouth_open_std_ratio: Standard deviation of the rendered opening over the true one's.
         face_width_px: Median true face width.
     """
 
@@ -113,6 +135,8 @@ class LandmarkMetrics:
     mouth_open_corr: float
     av_offset_frames: int
     av_offset_corr: float
+    mouth_open_slope: float
+    mouth_open_std_ratio: float
     face_width_px: float
 
     def as_dict(self) -> dict:
@@ -127,4 +151,5 @@ def landmark_metrics(pred: np.ndarray, true: np.ndarray, max_shift: int = 5) -> 
     mouth_px, all_px = lmd(pred, true, MOUTH), lmd(pred, true)
     opening_pred, opening_true = mouth_opening(pred), mouth_opening(true)
     shift, corr = av_offset(opening_pred, opening_true, max_shift)
-    return LandmarkMetrics(mouth_px, all_px, mouth_px / width, all_px / width, lmd_shape(pred, true), still_lmd(true), pearson(opening_pred, opening_true), shift, corr, width)
+    slope, ratio = amplitude(opening_pred, opening_true)
+    return LandmarkMetrics(mouth_px, all_px, mouth_px / width, all_px / width, lmd_shape(pred, true), still_lmd(true), pearson(opening_pred, opening_true), shift, corr, slope, ratio, width)
