@@ -172,17 +172,20 @@ def _project(ds, points: torch.Tensor) -> np.ndarray:  # noqa: ANN001
     return np.stack([fx * p[:, 0] / p[:, 2] + cx, fy * p[:, 1] / p[:, 2] + cy], 1)
 
 
-def test_a_click_falls_in_the_window_of_its_frame() -> None:
+@pytest.mark.parametrize(("fps", "neighbours"), [(25.0, (10, 6)), (30.0, (9, 6)), (24.0, (10, 6)), (50.0, (9, 7))])
+def test_a_click_falls_in_the_window_of_its_frame(fps: float, neighbours: tuple[int, int]) -> None:
     """Frame ``i`` is shown at ``i / fps`` and its feature window is centred there (column 8 of 16
     is the feature at the frame's time): a click at ``k / fps`` is at column 8 of frame ``k``'s
-    window, and 2 columns (40 ms at 50 features per second) off in its neighbours'."""
-    sr, fps, k = 16000, 25.0, 20
+    window, and in its neighbours' as many columns off as their times are (at 50 features per
+    second: 2 columns at 25 fps; at 30 fps the frames 33 ms apart land on features 1.67 apart,
+    32 and 35 around the click's 33)."""
+    sr, k = 16000, 20
     x = 0.01 * np.random.default_rng(0).standard_normal(2 * sr).astype(np.float32)
     at = int(k / fps * sr)
     x[at - 40 : at + 40] += 0.9
     windows = audio_frames(AudioTrack(x, sr, 0.0), fps, "logmel", "click")
     loudest = windows.mean(2).argmax(1)  # the column of the click in each window
-    assert (loudest[k - 1], loudest[k], loudest[k + 1]) == (10, 8, 6)
+    assert (loudest[k - 1], loudest[k], loudest[k + 1]) == (neighbours[0], 8, neighbours[1])
 
 
 def test_the_render_passes_each_frame_its_own_audio_code(scene: Path, run: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -80,16 +80,16 @@ def test_speak_refuses_bad_requests() -> None:
 
 
 @needs_espeak
-def test_vowel_opens_the_mouth_in_the_frame_where_it_is_spoken() -> None:
+@pytest.mark.parametrize("fps", [25.0, 30.0])
+def test_vowel_opens_the_mouth_in_the_frame_where_it_is_spoken(fps: float) -> None:
     """A known phoneme at a known time: "Ah." said over and over, with pauses between. Each "ah"
-    opens the jaw past half in exactly the first 25 fps frame at or after the vowel's start and
+    opens the jaw past half in exactly the first frame (at 25 and at 30 fps) at or after the vowel's start and
     closes it below half in the first frame at or after its end (the smoothing is symmetric, so
     half-open is the moment the phoneme starts), and the audio's voiced band is loud in the
     vowel's frames and quiet in the pauses: truth, audio and frames share one clock."""
     from adnerf.synth import espeak_speech
 
     speech = espeak_speech(3.0, seed=0, sentences=["Ah."])
-    fps = 25.0
     times = np.arange(int(3.0 * fps)) / fps
     jaw = jaw_track(speech.phonemes, times, end=3.0)
     loud = voiced_loudness(speech.samples, 16000, times, window=0.03)
