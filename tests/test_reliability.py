@@ -391,3 +391,112 @@ def test_a_clip_too_large_for_memory_is_refused_in_one_line_before_work(scene: P
     require(10**15, "anything", available=None)
     with pytest.raises(MemoryNeedError, match="the GPU"):
         require(10, "x", available=10, where="the GPU")
+
+
+# ------------------------------------------------------------------------ one writer, interrupts
+
+
+def _training_child(scene: Path, run_dir: Path, config: Path, *extra: str) -> "subprocess.Popen[str]":
+    """``adnerf train`` of a run that would take very long, in a child process, once it has
+    logged its first steps (so it holds the lock and has written a checkpoint)."""
+    import subprocess
+    import sys
+    import time
+
+    config.write_text(json.dumps({**CFG, "head_iters": 10**6, "checkpoint_every": 4}))
+    child = subprocess.Popen([sys.executable, "-c", "import sys; from adnerf.cli import main; sys.exit(main(sys.argv[1:]))", "train", str(scene), "-o", str(run_dir), "--config", str(config), *extra], stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    deadline = time.time() + 120
+    while not ((run_dir / "checkpoint.pt").exists() and (run_dir / "log.jsonl").exists()):
+        assert child.poll() is None, child.stderr.read() if child.stderr else ""
+        assert time.time() < deadline, "the training child did not start"
+        time.sleep(0.2)
+    return child
+
+
+@pytest.mark.parametrize(("signum", "code"), [("SIGTERM", 143), ("SIGINT", 130)])
+def test_a_second_writer_is_refused_and_a_signal_stops_training_with_its_checkpoint(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture, signum: str, code: int) -> None:
+    import signal
+
+    from adnerf.lock import lock_path
+
+    run_dir = tmp_path / "run"
+    child = _training_child(scene, run_dir, tmp_path / "cfg.json")
+    try:
+        # A second training of the same run (another terminal, a restarted job) is refused.
+        _fails(["train", str(scene), "-o", str(run_dir), "--resume"], f"another adnerf writes this run: process {child.pid} on", capsys)
+        with pytest.warns(UserWarning, match=r"is being trained \(process .*using its last checkpoint, head step \d+/1000000"):
+            from adnerf.model.run_folder import load_run
+
+            load_run(run_dir)  # a reader reads the last complete checkpoint, and says so
+    finally:
+        child.send_signal(getattr(signal, signum))
+        _, err = child.communicate(timeout=120)
+    # The signal finishes the step, writes a checkpoint and says where it stopped, in one line.
+    assert child.returncode == code, err
+    lines = [line for line in err.splitlines() if line.startswith("adnerf:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    step = int(lines[0].split("stopped at head step ")[1].split(" ")[0])
+    assert lines[0].endswith(f"of 1000000 ({signum}); --resume continues")
+    ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+    assert ckpt["head_step"] == step
+    logged = [json.loads(line)["step"] for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    assert logged == sorted(set(logged))  # each step once, in order
+    assert not lock_path(run_dir).exists()  # released
+    # The run resumes from there (now with an end in sight).
+    (tmp_path / "more.json").write_text(json.dumps({"head_iters": step + 2}))
+    assert main(["train", str(scene), "-o", str(run_dir), "--resume", "--config", str(tmp_path / "more.json"), "--stage", "head"]) == 0
+
+
+def test_the_lock_of_a_killed_training_is_taken_over_with_a_warning(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    import signal
+
+    from adnerf.lock import FolderBusyError, FolderLock, lock_owner, lock_path
+
+    run_dir = tmp_path / "run"
+    child = _training_child(scene, run_dir, tmp_path / "cfg.json")
+    assert lock_owner(run_dir)["pid"] == child.pid
+    child.send_signal(signal.SIGKILL)
+    child.wait(timeout=60)
+    assert lock_path(run_dir).exists() and lock_owner(run_dir) is None  # left behind, owner gone
+    (tmp_path / "more.json").write_text(json.dumps({"head_iters": 1}))
+    capsys.readouterr()
+    assert main(["train", str(scene), "-o", str(run_dir), "--resume", "--config", str(tmp_path / "more.json"), "--stage", "head"]) == 0
+    err = capsys.readouterr().err
+    assert f"took over the lock of process {child.pid}" in err, err
+    # A lock of another host cannot be checked: refused, with the file to remove.
+    lock_path(tmp_path / "x").write_text(json.dumps({"pid": 1, "host": "elsewhere", "started": 0, "command": "adnerf train"}))
+    with pytest.raises(FolderBusyError, match="process 1 on elsewhere .*remove .*x.adnerf-lock"):
+        with FolderLock(tmp_path / "x"):
+            pass
+    # A half-written lock (a crash between create and write) holds nothing.
+    lock_path(tmp_path / "y").write_text("{")
+    with pytest.warns(UserWarning, match="took over"):
+        with FolderLock(tmp_path / "y") as lock:
+            assert lock.held and lock_owner(tmp_path / "y")["pid"] == os.getpid()
+    assert not lock_path(tmp_path / "y").exists()
+
+
+def test_dataset_writers_hold_the_lock_of_their_folder(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    import subprocess
+    import sys
+
+    from adnerf.lock import FolderLock
+
+    # Another process holds the dataset folder's lock: synth, preprocess and import-adnerf refuse.
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from adnerf.lock import FolderLock\nwith FolderLock(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)", str(tmp_path / "data")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        _fails(["synth", "-o", str(tmp_path / "data"), *SYNTH_ARGS], f"another adnerf writes this dataset: process {holder.pid}", capsys)
+        video = tmp_path / "v.mp4"
+        from adnerf.io import write_video
+
+        write_video(video, np.zeros((4, 16, 16, 3), np.uint8), 25.0)
+        _fails(["preprocess", str(video), "-o", str(tmp_path / "data")], f"process {holder.pid}", capsys)
+        (tmp_path / "ad").mkdir()
+        _fails(["import-adnerf", str(tmp_path / "ad"), "-o", str(tmp_path / "data")], f"process {holder.pid}", capsys)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not (tmp_path / "data").exists()
+    with pytest.warns(UserWarning, match=f"took over the lock of process {holder.pid}"), FolderLock(tmp_path / "data"):
+        pass  # this process can take it now (the killed holder is gone)

@@ -259,24 +259,33 @@ def _cmd_features(args: argparse.Namespace) -> int:
     return 0
 
 
+def _interrupted() -> type[BaseException]:
+    """Training stopped by a signal after writing its checkpoint (imported when an error is matched)."""
+    from .model.train import TrainingInterrupted
+
+    return TrainingInterrupted
+
+
 def _user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions whose message is for the user (bad input), printed without a traceback."""
     from .audio.features import FeatureError
     from .commands.render_video import RenderError
     from .io import MediaError
+    from .lock import FolderBusyError
     from .memory import MemoryNeedError
     from .model.data import DatasetError
     from .model.run_folder import RunError
     from .outputs import OutputError
     from .preprocess.pipeline import PreprocessError
 
-    return (DatasetError, FeatureError, MediaError, MemoryNeedError, OutputError, PreprocessError, RenderError, RunError)
+    return (DatasetError, FeatureError, FolderBusyError, MediaError, MemoryNeedError, OutputError, PreprocessError, RenderError, RunError)
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from .audio.espeak import EspeakError, check_voice
+    from .lock import FolderLock
     from .outputs import check_folder_output
     from .synth import SynthConfig, espeak_available, synthesize
 
@@ -289,7 +298,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     try:
         if cfg.voice == "espeak" or (cfg.voice == "auto" and espeak_available()):
             check_voice(cfg.speaker)
-        with tqdm(total=cfg.n_frames, desc="synth frames", unit="frame") as bar:
+        with FolderLock(args.output, "dataset"), tqdm(total=cfg.n_frames, desc="synth frames", unit="frame") as bar:  # the lock before the bar
             out = synthesize(args.output, cfg, progress=lambda step, done, total: bar.update(done - bar.n), overwrite=args.overwrite)
     except EspeakError as exc:  # an unknown --speaker, or no espeak-ng for --voice espeak
         raise CliError(str(exc)) from exc
@@ -405,9 +414,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_import_adnerf(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from .lock import FolderLock
     from .preprocess.adnerf_import import import_adnerf
 
-    with tqdm(desc="import frames", unit="frame") as bar, warnings.catch_warnings(record=True) as caught:
+    with FolderLock(args.output, "dataset"), tqdm(desc="import frames", unit="frame") as bar, warnings.catch_warnings(record=True) as caught:  # the lock before the bar
         warnings.simplefilter("always")
 
         def tick(done: int, total: int) -> None:
@@ -716,6 +726,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CliError as exc:
         print(f"adnerf: error: {exc}", file=sys.stderr)
         return 2
+    except _interrupted() as exc:
+        print(f"adnerf: {exc}", file=sys.stderr)
+        return 128 + exc.signum  # 130 for SIGINT, 143 for SIGTERM, as the shell reports a signal
     except KeyboardInterrupt:
         print("adnerf: interrupted", file=sys.stderr)
         return 130

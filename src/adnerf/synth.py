@@ -42,6 +42,7 @@ from .audio.espeak import PAUSE, Phoneme, espeak_ready, speak
 from .audio.features import FeatureSpec, resample, speech_windows, voiced_loudness
 from .audio.visemes import jaw_track
 from .io import AudioTrack, write_video
+from .lock import writes_folder
 from .model.blinks import blink_track
 from .model.data import (
     LABEL_HEAD,
@@ -538,6 +539,7 @@ def _to_u8(x: np.ndarray) -> np.ndarray:
     return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
+@writes_folder("out_dir", "dataset")  # one writer per dataset folder
 def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, progress: Callable[[str, int, int], None] | None = None, overwrite: bool = False) -> Path:
     """Build a synthetic talking-head dataset (see :mod:`adnerf.model.data` for the layout).
 

@@ -32,6 +32,7 @@ from ..model.blinks import count_blinks, eye_track
 from ..model.data import DatasetError, SceneMeta, check_poses
 from ..model.run_folder import Run
 from ..model.talking_head import FrameRender, render_frame
+from ..lock import writes_folder
 from ..outputs import check_file_output, check_frames_folder
 from ..pose import HeadPose
 
@@ -212,6 +213,7 @@ def audio_frames(audio: AudioTrack, fps: float, feature_kind: str, where: str) -
     return speech_windows(audio, times, FeatureSpec(kind=feature_kind))
 
 
+@writes_folder("frames_dir", "frames folder")  # one writer per --frames folder
 def render_audio_video(
     run: Run,
     audio_path: str | Path,

@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import json
 import shutil
+import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import torch
 
 from ..atomic import atomic_path
+from ..lock import lock_owner
 from .data import TalkingHeadDataset
 from .talking_head import ModelConfig, TalkingHead, migrate_state_dict
 from .train_config import TrainConfig
@@ -141,7 +143,8 @@ def read_checkpoint(path: Path, device: str | torch.device) -> dict:
 
 
 def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
-    """Load a run folder's configuration and latest checkpoint.
+    """Load a run folder's configuration and latest checkpoint (a warning says so when another
+    process is training the run: its last checkpoint is what is read).
 
     Raises:
         RunError: Missing folder, ``run.json`` or checkpoint, a damaged one, or another format version.
@@ -154,6 +157,9 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     tcfg = TrainConfig.from_dict(doc["train"])
     load_model_state(model, ckpt["model"], ckpt_path, scheduled_smoothing(tcfg, ckpt["head_step"]))
     model.eval()
+    owner = lock_owner(root)
+    if owner is not None:  # read beside a training: its last complete checkpoint (written atomically)
+        warnings.warn(f"{root} is being trained (process {owner.get('pid')} on {owner.get('host')}); using its last checkpoint, head step {ckpt['head_step']}/{tcfg.head_iters}, torso step {ckpt['torso_step']}/{tcfg.torso_iters}", stacklevel=2)
     return Run(root, Path(doc["dataset"]), model, tcfg, ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"])
 
 

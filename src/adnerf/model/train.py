@@ -25,7 +25,10 @@ checkpoint every ``checkpoint_every`` iterations and at the end of each stage. T
 from __future__ import annotations
 
 import json
+import signal
+import threading
 import time
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
@@ -37,6 +40,7 @@ from tqdm.auto import tqdm
 
 from ..atomic import atomic_path
 from ..compositor import Composite, Layer, over
+from ..lock import FolderLock
 from ..memory import require
 from ..metrics import psnr_from_mse
 from ..outputs import check_folder_output, ensure_writable
@@ -81,7 +85,7 @@ from .talking_head import (
 from .train_config import TrainConfig
 
 # The run folder and the schedule live in their own modules; re-exported for existing imports.
-__all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "Trainer", "load_run", "resumed_config", "stored_config", "train"]
+__all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "Trainer", "TrainingInterrupted", "load_run", "resumed_config", "stored_config", "train"]
 
 
 
@@ -212,6 +216,44 @@ def behind_chin(is_head: torch.Tensor, is_torso: torch.Tensor, height: int, widt
     return near & is_head
 
 
+class TrainingInterrupted(Exception):
+    """Training stopped on a signal (SIGINT, SIGTERM) after finishing its step and writing a
+    checkpoint; ``--resume`` continues from it.
+
+    Attributes:
+        signum: The signal.
+        stage: The stage it stopped in.
+        step: Steps of that stage done.
+        iters: Steps the stage has.
+    """
+
+    def __init__(self, signum: int, stage: str, step: int, iters: int) -> None:
+        self.signum, self.stage, self.step, self.iters = signum, stage, step, iters
+        super().__init__(f"stopped at {stage} step {step} of {iters} ({signal.Signals(signum).name}); --resume continues")
+
+
+@contextmanager
+def stop_on_signals(trainer: "Trainer"):  # noqa: ANN201
+    """While training, SIGINT and SIGTERM (Ctrl-C; a scheduler's notice before it kills) ask
+    ``trainer`` to stop after its current step (:attr:`Trainer.stop_signal`); a second one
+    stops at once. Outside the main thread (where Python delivers signals) nothing is changed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def ask(signum: int, frame: object) -> None:
+        if trainer.stop_signal is not None:  # asked twice: stop now
+            raise KeyboardInterrupt
+        trainer.stop_signal = signum
+
+    before = {sig: signal.signal(sig, ask) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
 class Trainer:
     """A training session of a talking head on a dataset, stepped by its stages.
 
@@ -279,6 +321,7 @@ class Trainer:
         self.head_step = self.torso_step = 0
         self.elapsed = {"head": 0.0, "torso": 0.0}
         self.samples = 0  # field evaluations (after empty-space skipping) since construction
+        self.stop_signal: int | None = None  # set by a signal (stop_on_signals): stop after this step
 
     @cached_property
     def reach(self) -> BitRows:
@@ -485,6 +528,11 @@ class Trainer:
                 self.log({**row, "elapsed": self.elapsed[stage]})
             if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
                 self.save()
+            if self.stop_signal is not None:
+                bar.close()
+                if (step + 1) % self.tcfg.checkpoint_every and step + 1 != iters:
+                    self.save()
+                raise TrainingInterrupted(self.stop_signal, stage, step + 1, iters)
         bar.close()
 
     def batch_of(self, groups: list[tuple[int, torch.Tensor, FrameCondition]]) -> Batch:
@@ -649,6 +697,9 @@ def train(
         RunError: Nothing to resume, a run already there without ``resume``, another dataset
             than the run's, a change a resume cannot make, a damaged checkpoint, or the torso
             stage before a finished head stage. Raised before anything is written.
+        adnerf.lock.FolderBusyError: Another live process trains ``run_dir``.
+        TrainingInterrupted: SIGINT or SIGTERM arrived; the step was finished and a checkpoint
+            written first.
         adnerf.outputs.OutputError: ``run_dir`` is a file, holds other files, or is not writable.
     """
     if stage not in ("head", "torso", "all"):
@@ -683,24 +734,28 @@ def train(
         raise RunError(f"stage 2 needs a finished stage 1 ({head_done}/{tcfg.head_iters} head iterations); run --stage head (with --resume) first")
     if (tcfg.rays // tcfg.frames) % ranks.world:
         raise RunError(f"{ranks.world} processes must split the {tcfg.rays // tcfg.frames} rays of each frame in a batch evenly; choose rays divisible by {ranks.world * tcfg.frames}")
-    ensure_writable(root)
-    devices = ranks.gather(str(device))
-    ranks.barrier()  # every process has checked the folder before process 0 writes into it
-    trainer = Trainer(root, ds, mcfg, tcfg, device, progress, ranks)
-    if ckpt is not None:
-        trainer.load(ckpt)
-    if ranks.main:
-        write_run(root, dataset, ds, mcfg, tcfg, {"world_size": ranks.world, "backend": ranks.backend, "devices": devices})
-    ranks.barrier()
-    budget = max_steps
-    if stage in ("head", "all"):
-        before = trainer.head_step
-        trainer.head_stage(budget)
-        if budget is not None:
-            budget -= trainer.head_step - before
-    if stage == "torso" or (stage == "all" and tcfg.torso_iters > 0 and (budget is None or budget > 0)):
-        trainer.torso_stage(budget)
-    if not (root / "checkpoint.pt").exists():
-        trainer.save()
-    ranks.barrier()
+    # One writer per run folder: a second training of it (another terminal, a restarted job)
+    # is refused here, before it writes (process 0 holds the lock for every process).
+    with FolderLock(root, "run") if ranks.main else nullcontext():
+        ensure_writable(root)
+        devices = ranks.gather(str(device))
+        ranks.barrier()  # every process has checked the folder before process 0 writes into it
+        trainer = Trainer(root, ds, mcfg, tcfg, device, progress, ranks)
+        if ckpt is not None:
+            trainer.load(ckpt)
+        if ranks.main:
+            write_run(root, dataset, ds, mcfg, tcfg, {"world_size": ranks.world, "backend": ranks.backend, "devices": devices})
+        ranks.barrier()
+        budget = max_steps
+        with stop_on_signals(trainer):
+            if stage in ("head", "all"):
+                before = trainer.head_step
+                trainer.head_stage(budget)
+                if budget is not None:
+                    budget -= trainer.head_step - before
+            if stage == "torso" or (stage == "all" and tcfg.torso_iters > 0 and (budget is None or budget > 0)):
+                trainer.torso_stage(budget)
+        if not (root / "checkpoint.pt").exists():
+            trainer.save()
+        ranks.barrier()
     return root

@@ -54,6 +54,7 @@ import numpy as np
 
 from ..audio.features import load_npy_windows
 from ..io import AudioTrack, MediaError, read_audio
+from ..lock import writes_folder
 from ..model.data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
 from ..outputs import check_folder_output
 from .landmarks import eye_centres_px, eye_openness, mouth_centres
@@ -155,6 +156,7 @@ def _scale_to_head_width(labels: np.ndarray, poses: np.ndarray, focal: float, he
     return head_width / float(np.median(widths))
 
 
+@writes_folder("out", "dataset")  # one writer per dataset folder
 def import_adnerf(
     source: str | Path,
     out: str | Path,

@@ -43,6 +43,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..io import AudioTrack, MediaError, read_audio, read_video
+from ..lock import writes_folder
 from ..model.data import (
     LABEL_HEAD,
     LABEL_TORSO,
@@ -691,6 +692,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
     return report
 
 
+@writes_folder("out", "dataset")  # one writer per dataset folder
 def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfig = PreprocessConfig(), *, progress: Bar | None = None, overwrite: bool = False) -> dict:
     """Turn a static-camera talking-head video into a dataset folder (see the module docstring).
 
