@@ -10,8 +10,10 @@ from adnerf.pose import euler_rotation
 from adnerf.preprocess.bundle import (
     bundle_adjust,
     ellipsoid_points,
+    point_groups,
     reprojection_residuals,
     residual_jacobians,
+    schur_blocks,
 )
 from adnerf.preprocess.check import align_poses
 from adnerf.preprocess.headpose import (
@@ -35,6 +37,34 @@ def _scene(n: int = 12, p: int = 40, seed: int = 0) -> tuple[torch.Tensor, torch
 def _observe(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
     cam = torch.einsum("nij,pj->npi", R, X) + t[:, None]
     return torch.stack([K[0] * cam[..., 0] / cam[..., 2] + K[2], K[1] * cam[..., 1] / cam[..., 2] + K[3]], -1)
+
+
+def test_schur_blocks_by_point_groups_equal_the_dense_product() -> None:
+    # The fast assembly of W Hpp^-1 W^T (groups of points seen in nearby frames) against the
+    # dense frames-by-points product: tracks seen in runs of consecutive frames, a few points seen
+    # in every frame (landmarks), and frames in any order of the observations.
+    g = torch.Generator().manual_seed(3)
+    nf, p = 40, 90
+    spans = [(int(a), int(a) + int(k)) for a, k in zip(torch.randint(0, nf - 8, (p - 3,), generator=g), torch.randint(2, 8, (p - 3,), generator=g))]
+    spans += [(0, nf)] * 3
+    obs = [(f, q) for q, (a, b) in enumerate(spans) for f in range(a, min(b, nf))]
+    obs = [obs[i] for i in torch.randperm(len(obs), generator=g)]
+    col = torch.tensor([f for f, _ in obs])
+    point = torch.tensor([q for _, q in obs])
+    w = torch.randn(len(obs), 6, 3, generator=g, dtype=torch.float64)
+    a = torch.randn(p, 3, 3, generator=g, dtype=torch.float64)
+    inv = torch.linalg.inv(a @ a.transpose(1, 2) + torch.eye(3, dtype=torch.float64))
+    wh = w @ inv[point]
+    W = torch.zeros(nf, 6, p, 3, dtype=torch.float64)
+    W[col, :, point] = w
+    Wm = W.reshape(6 * nf, 3 * p)
+    dense = torch.einsum("apk,pkl->apl", W.reshape(6 * nf, p, 3), inv).reshape(6 * nf, 3 * p) @ Wm.T
+    groups = point_groups(col, point, p, max_group=16)
+    assert sorted(torch.cat(groups).tolist()) == list(range(p))  # each point in one group
+    assert any(len(gr) == 3 and set(gr.tolist()) == {p - 3, p - 2, p - 1} for gr in groups)  # the long ones apart
+    torch.testing.assert_close(schur_blocks(wh, w, col, point, groups, nf), dense, rtol=1e-12, atol=1e-10)
+    # One group of everything is the dense product too (the grouping changes the cost, not the sum).
+    torch.testing.assert_close(schur_blocks(wh, w, col, point, [torch.arange(p)], nf), dense, rtol=1e-12, atol=1e-10)
 
 
 def test_analytic_jacobians_match_autograd() -> None:

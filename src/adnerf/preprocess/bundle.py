@@ -9,6 +9,9 @@ observation is the reprojection error in pixels,
 minimised with a Huber loss by Levenberg-Marquardt: iteratively reweighted Gauss-Newton steps on
 the se(3) increments of the poses and the point increments, with analytic Jacobians and the
 points eliminated by the Schur complement, so the linear system has only ``6 (N - 1)`` unknowns.
+The complement is assembled group by group of points seen in nearby frames (a chained flow
+track is seen in a few dozen consecutive frames of a segment), each group's product formed only
+over its frames: its cost grows with the tracks' lengths, not with frames times points.
 
 Gauge: the reference frame's pose is held fixed, which fixes the canonical frame (6 degrees of
 freedom). One more freedom remains: the whole scene scaled about the camera centre (points
@@ -33,7 +36,7 @@ import torch
 from kornia.geometry.camera.perspective import project_points
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-__all__ = ["BundleResult", "bundle_adjust", "reprojection_residuals", "residual_jacobians", "ellipsoid_points"]
+__all__ = ["BundleResult", "bundle_adjust", "reprojection_residuals", "residual_jacobians", "ellipsoid_points", "point_groups", "schur_blocks"]
 
 
 @dataclass
@@ -93,6 +96,76 @@ def residual_jacobians(R: torch.Tensor, t: torch.Tensor, points: torch.Tensor, f
     j_pose = dproj @ torch.cat([eye, -skew], -1)
     j_point = dproj @ Rm
     return j_pose, j_point
+
+
+def point_groups(col: torch.Tensor, point: torch.Tensor, n_points: int, max_group: int = 256) -> list[torch.Tensor]:
+    """Points grouped for :func:`schur_blocks`: each group's observations span few frames.
+
+    Points are taken in the order of their first frame and added to a group while the group's
+    frames (first to last) stay within twice the median span of a point (a chained flow track is
+    seen in consecutive frames); points seen over more than that (landmarks, seen in every frame)
+    form groups of their own.
+
+    Args:
+        col: ``(M,)`` each observation's frame (among the free frames).
+        point: ``(M,)`` each observation's point.
+        n_points: Number of points.
+        max_group: Most points in a group.
+
+    Returns:
+        Groups of point indices; every point with an observation is in exactly one.
+    """
+    big = torch.iinfo(torch.long).max
+    first = torch.full((n_points,), big, dtype=torch.long, device=col.device).scatter_reduce(0, point, col, "amin")
+    last = torch.full((n_points,), -1, dtype=torch.long, device=col.device).scatter_reduce(0, point, col, "amax")
+    seen = last >= 0
+    span = last - first + 1
+    limit = 2 * int(span[seen].median()) if bool(seen.any()) else 0
+    long = torch.nonzero(seen & (span > limit))[:, 0].tolist()
+    short = torch.nonzero(seen & (span <= limit))[:, 0]
+    groups: list[list[int]] = []
+    lo = -1
+    for q in short[torch.argsort(first[short], stable=True)].tolist():
+        if not groups or len(groups[-1]) >= max_group or int(last[q]) - lo + 1 > limit:
+            groups.append([])
+            lo = int(first[q])
+        groups[-1].append(q)
+    groups += [long[i : i + max_group] for i in range(0, len(long), max_group)]
+    return [torch.tensor(g, dtype=torch.long, device=col.device) for g in groups if g]
+
+
+def schur_blocks(wh: torch.Tensor, w: torch.Tensor, col: torch.Tensor, point: torch.Tensor, groups: list[torch.Tensor], nf: int) -> torch.Tensor:
+    """``W Hpp^-1 W^T`` of the Schur complement as a dense ``(6 nf, 6 nf)`` matrix.
+
+    ``W`` (``6 nf x 3 P``) has a ``6 x 3`` block per observation; for each group of points
+    (:func:`point_groups`) only the rows of the frames the group is seen in are formed, and their
+    product is added to that square of the result: dense matrix products, at a cost that grows
+    with the points' spans rather than with frames times points.
+
+    Args:
+        wh: ``(M, 6, 3)`` each observation's ``W_o Hpp^-1`` (its block times the inverse of its
+            point's block).
+        w: ``(M, 6, 3)`` each observation's block ``W_o``.
+        col: ``(M,)`` each observation's frame among the free frames.
+        point: ``(M,)`` each observation's point.
+        groups: :func:`point_groups` of the observations.
+        nf: Free frames.
+    """
+    out = torch.zeros(6 * nf, 6 * nf, dtype=w.dtype, device=w.device)
+    slot = torch.full((int(point.max()) + 1 if len(point) else 0,), -1, dtype=torch.long, device=w.device)
+    for g in groups:
+        slot[g] = torch.arange(len(g), device=w.device)
+        rows = torch.nonzero(slot[point] >= 0)[:, 0]  # the group's observations
+        c, q = col[rows], slot[point[rows]]
+        lo, hi = int(c.min()), int(c.max()) + 1
+        dense_w = torch.zeros(hi - lo, 6, len(g), 3, dtype=w.dtype, device=w.device)
+        dense_wh = torch.zeros_like(dense_w)
+        dense_w[c - lo, :, q] = w[rows]
+        dense_wh[c - lo, :, q] = wh[rows]
+        k = 6 * (hi - lo)
+        out[6 * lo : 6 * hi, 6 * lo : 6 * hi] += dense_wh.reshape(k, -1) @ dense_w.reshape(k, -1).T
+        slot[g] = -1
+    return out
 
 
 def _retract(R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -164,6 +237,9 @@ def bundle_adjust(
     free[fixed_frame] = False
     col = torch.cumsum(free.long(), 0) - 1  # frame -> block column among free frames
     nf = int(free.sum())
+    keep = free[frame]  # observations in the free frames: the rows of W
+    kept_col, kept_point = col[frame[keep]], point[keep]
+    groups = point_groups(kept_col, kept_point, p)
 
     def prior(X_: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Shape prior residuals ``(P,)`` and their Jacobians ``(P, 3)``."""
@@ -203,26 +279,29 @@ def bundle_adjust(
         pr, pj = prior(points)
         Hpp = Hpp + pj[:, :, None] * pj[:, None, :]
         gp = gp + pj * pr[:, None]
-        # W = Hcp (6F x 3P, dense over the free frames); the Schur complement is S = Hcc - W Hpp^-1 W^T.
-        W = torch.zeros(nf, 6, p, 3, dtype=R.dtype, device=R.device)
-        keep = free[frame]
-        W[col[frame[keep]], :, point[keep]] = (wjc.transpose(1, 2) @ jp)[keep]
-        Wm = W.reshape(6 * nf, 3 * p)
+        # W = Hcp, a 6 x 3 block W_o per observation of a free frame; the Schur complement is
+        # S = Hcc - W Hpp^-1 W^T, whose (i, j) block sums W_o Hpp^-1 W_o'^T over the pairs of
+        # observations of one point in frames i and j.
+        w_obs = (wjc.transpose(1, 2) @ jp)[keep]
         Hcc_f = Hcc[free]
         improved = False
         while lam < 1e10:
             Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=-2, dim2=-1).clamp_min(1e-9))
             Hpp_inv = torch.linalg.inv(Hpp_d)
-            WH = torch.einsum("apk,pkl->apl", W.reshape(6 * nf, p, 3), Hpp_inv).reshape(6 * nf, 3 * p)
+            wh = w_obs @ Hpp_inv[kept_point]
             Hcc_d = Hcc_f + lam * torch.diag_embed(torch.diagonal(Hcc_f, dim1=-2, dim2=-1).clamp_min(1e-9))
-            S = torch.block_diag(*Hcc_d) - WH @ Wm.T
-            rhs = -gc[free].reshape(-1) + WH @ gp.reshape(-1)
-            try:
-                dc = torch.linalg.solve(S, rhs)
-            except RuntimeError:
+            S = torch.block_diag(*Hcc_d) - schur_blocks(wh, w_obs, kept_col, kept_point, groups, nf)
+            whg = torch.zeros(nf, 6, dtype=R.dtype, device=R.device).index_add_(0, kept_col, torch.einsum("okl,ol->ok", wh, gp[kept_point]))
+            rhs = -gc[free].reshape(-1) + whg.reshape(-1)
+            # S is symmetric positive definite (the damped normal equations' Schur complement):
+            # Cholesky, at half the cost of LU; where rounding makes it fail, damp more.
+            L, info = torch.linalg.cholesky_ex(S)
+            if int(info) != 0:
                 lam *= 10.0
                 continue
-            dp = torch.einsum("pkl,pl->pk", Hpp_inv, -gp - (Wm.T @ dc).reshape(p, 3))
+            dc = torch.cholesky_solve(rhs[:, None], L)[:, 0]
+            wdc = torch.zeros(p, 3, dtype=R.dtype, device=R.device).index_add_(0, kept_point, torch.einsum("okl,ok->ol", w_obs, dc.reshape(nf, 6)[kept_col]))
+            dp = torch.einsum("pkl,pl->pk", Hpp_inv, -gp - wdc)
             delta = torch.zeros(n, 6, dtype=R.dtype, device=R.device)
             delta[free] = dc.reshape(nf, 6)
             R_new, t_new = _retract(R, t, delta)
