@@ -33,6 +33,32 @@ def _person(h: int = 120, w: int = 100) -> tuple[np.ndarray, np.ndarray]:
     return person.astype(bool), face
 
 
+def test_shoulders_raised_beside_the_neck_are_torso_and_hair_hanging_there_head() -> None:
+    # A speaker filmed from a little above: the suit's shoulders rise beside the neck to row 64,
+    # above the chin's row (70) where the cut beside the neck lies; a lock of hair hangs beside
+    # the left cheek (image right) down past the chin. The shoulders are clothes (torso), the
+    # lock head.
+    h, w = 120, 100
+    person = np.zeros((h, w), np.uint8)
+    cv2.ellipse(person, (50, 38), (24, 34), 0, 0, 360, 1, -1)  # head with hair, rows 4-72
+    person[60:100, 40:61] = 1  # neck
+    person[64:, 5:32] = 1  # right shoulder (image left), raised, a gap from the head above it
+    person[80:, 5:41] = 1  # joined to the neck lower down
+    person[30:76, 72:79] = 1  # the lock of hair, from the head down past the chin
+    person[64:, 82:96] = 1  # left shoulder, raised, apart from the lock
+    person[80:, 60:96] = 1
+    person[90:, :] = 1  # the chest
+    person = person.astype(bool)
+    a = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    face = np.stack([50 + 16 * np.cos(a), 46 + 24 * np.sin(a)], 1)  # face oval, rows 22-70
+    labels = split_at_jaw(person, face, neck_span=(40.0, 61.0))
+    assert labels[66, 15] == LABEL_TORSO and labels[68, 90] == LABEL_TORSO  # the raised shoulders
+    assert labels[69, 50] == LABEL_HEAD and labels[72, 50] == LABEL_TORSO  # the chin; the neck under it
+    assert labels[68, 75] == LABEL_HEAD and labels[74, 75] == LABEL_TORSO  # the lock: head down to the chin's row
+    assert labels[66, 30] == LABEL_TORSO and labels[58, 30] == LABEL_HEAD  # the shoulder's top edge; the head above its gap
+    assert (labels[:46][person[:46]] == LABEL_HEAD).all()
+
+
 def test_split_at_jaw_cuts_the_neck_under_the_face_and_keeps_the_hair_beside_it() -> None:
     person, face = _person()
     labels = split_at_jaw(person, face)

@@ -160,7 +160,9 @@ def split_at_jaw(person: np.ndarray, face_points: np.ndarray, margin: float = 0.
         ``(H, W)`` uint8 labels (all torso when the face lies outside the frame): in the columns
         of the points' convex hull (within ``neck_span``), head where the person is on or above
         the hull's lower edge (the jaw line) plus ``margin`` and torso below (the neck); beside
-        them, head down to the chin's row plus ``margin`` (hair, ears) and torso below (shoulders).
+        them, head down to the chin's row plus ``margin`` where it joins the head above (hair,
+        ears), torso below and wherever it does not (shoulders raised beside the neck; see
+        :func:`_unjoined_beside`).
     """
     h, w = person.shape
     points = face_points[np.isfinite(face_points).all(1)]
@@ -173,14 +175,38 @@ def split_at_jaw(person: np.ndarray, face_points: np.ndarray, margin: float = 0.
     if len(cols) == 0:  # the face lies outside the frame
         labels[person] = LABEL_TORSO
         return labels
-    cut = np.full(w, float(h - 1 - np.argmax(hull[::-1].any(1))))  # beside the face: the chin's row
+    chin = float(h - 1 - np.argmax(hull[::-1].any(1)))
+    cut = np.full(w, chin)  # beside the face: the chin's row
     if neck_span is not None:
         cols = cols[(cols + 0.5 >= neck_span[0]) & (cols + 0.5 <= neck_span[1])]
     cut[cols] = h - 1 - np.argmax(hull[::-1, cols] > 0, axis=0)  # under the face: its lower edge
     head = person & (np.arange(h)[:, None] <= cut[None, :] + margin)
+    head &= ~_unjoined_beside(head, cols, int(np.argmax(hull.any(1))), chin)
     labels[head] = LABEL_HEAD
     labels[person & ~head] = LABEL_TORSO
     return labels
+
+
+def _unjoined_beside(head: np.ndarray, neck_cols: np.ndarray, top: int, chin: float) -> np.ndarray:
+    """Pixels of ``head`` beside the neck's columns, below the face's middle row and down to the
+    chin, that do not join the head above that row: clothes, not hair or ears.
+
+    Shoulders of a speaker filmed from a little above rise beside the neck to the chin's height;
+    hair and ears there hang from the head above. Below the row halfway between the face's top
+    ``top`` and the chin (about the nose's tip, which shoulders do not reach) and beside the
+    neck columns ``neck_cols``, a connected piece of ``head`` (8-neighbours, within that band)
+    stays head only when it touches the head on the band's top row.
+    """
+    h, w = head.shape
+    mid = int((top + chin) // 2)
+    band = np.zeros_like(head)
+    band[mid:, :] = head[mid:, :]
+    band[:, neck_cols] = False
+    if not band.any():
+        return band
+    count, pieces = cv2.connectedComponents(band.astype(np.uint8), connectivity=8)
+    joined = np.unique(pieces[mid][band[mid]])  # pieces on the band's top row, under the head above it
+    return band & ~np.isin(pieces, joined[joined > 0])
 
 
 # iBUG 68-point layout: jaw 0-16 (chin tip 8), lips 48-67 (lower lip's middle 57). The neck lies
