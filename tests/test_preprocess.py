@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import cv2
@@ -87,6 +88,33 @@ def test_preprocess_recovers_the_synthetic_truth(preprocessed: Path, scene: Path
     assert report["torso"]["frames"] == 75 and share == out["torso_person_at_bottom"] >= 0.95
     assert out["iou_torso"] > 0.88 and "torso_warning" not in report and out["passed"]["torso"]
     assert report["face_clothes"]["frames"] == 75 and report["face_clothes"]["added_fraction"] > 0
+
+
+def test_sigterm_during_preprocessing_keeps_the_finished_steps_and_says_which_was_cut(scene: Path, tmp_path: Path) -> None:
+    # A scheduler's SIGTERM in the middle of a step: one line that names the step cut and what
+    # was kept, exit 143, no traceback, no dataset; the same command then resumes there.
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "data"
+    argv = ["preprocess", str(scene / "video.mp4"), "-o", str(out), "--focal", str(1.33 * 96)]
+    child = subprocess.Popen([sys.executable, "-c", "import sys; from adnerf.cli import main; sys.exit(main(sys.argv[1:]))", *argv], stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    steps = tmp_path / ".data.preprocess" / "steps.json"
+    deadline = time.time() + 300
+    while not (steps.exists() and "face" in json.loads(steps.read_text() or "{}")):
+        assert child.poll() is None and time.time() < deadline, child.stderr.read() if child.poll() is not None else "no face step"
+        time.sleep(0.05)
+    child.send_signal(signal.SIGTERM)  # in the pose step, the longest
+    _, err = child.communicate(timeout=120)
+    lines = [line for line in err.splitlines() if line.startswith("adnerf:")]
+    assert child.returncode == 143 and len(lines) == 1 and "Traceback" not in err, err
+    assert "stopped in the pose step; 4 finished step(s) kept in" in lines[0] and "(decode, features, parse, face): the same command resumes there" in lines[0]
+    assert not out.exists() and steps.exists()
+    seen: list[str] = []
+    preprocess_video(scene / "video.mp4", out, PreprocessConfig(focal=1.33 * 96), progress=lambda s, d, t: seen.append(s))
+    assert {"decode (done before)", "parse (done before)", "face (done before)"} <= set(seen) and "pose (done before)" not in seen
 
 
 def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -500,3 +500,25 @@ def test_dataset_writers_hold_the_lock_of_their_folder(tmp_path: Path, capsys: p
     assert not (tmp_path / "data").exists()
     with pytest.warns(UserWarning, match=f"took over the lock of process {holder.pid}"), FolderLock(tmp_path / "data"):
         pass  # this process can take it now (the killed holder is gone)
+
+
+def test_sigterm_during_rendering_leaves_no_mp4_and_exits_143(run: Path, tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    wav = tmp_path / "long.wav"
+    write_wav(wav, AudioTrack((0.2 * np.sin(np.arange(16000 * 120) * 0.05)).astype(np.float32), 16000))  # 2 minutes: still rendering when the signal comes
+    out = tmp_path / "out.mp4"
+    child = subprocess.Popen([sys.executable, "-c", "import sys; from adnerf.cli import main; sys.exit(main(sys.argv[1:]))", "render", str(run), "--audio", str(wav), "-o", str(out)], stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    seen = ""
+    deadline = time.time() + 120
+    while "frame" not in seen:  # the progress bar has started: frames are being rendered
+        assert child.poll() is None and time.time() < deadline, seen
+        seen += child.stderr.read(1)
+    child.send_signal(signal.SIGTERM)
+    _, err = child.communicate(timeout=60)
+    assert child.returncode == 143, seen + err
+    assert "adnerf: interrupted" in err and "Traceback" not in err
+    assert not out.exists() and not list(tmp_path.glob("*.mp4*"))  # nothing half-written under any name

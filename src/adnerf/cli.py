@@ -6,10 +6,13 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 __all__ = ["main"]
 
@@ -257,6 +260,28 @@ def _cmd_features(args: argparse.Namespace) -> int:
     save_npy_atomic(out, windows)
     print(f"{out}: {windows.shape[0]} frames ({source}) x {windows.shape[1]} x {windows.shape[2]} {args.kind} features from {audio.duration:.2f} s of audio")
     return 0
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's notice before it kills), raised where the process is, so that a
+    command stops as on Ctrl-C: atomic writes leave nothing half-written, preprocessing keeps its
+    finished steps. Training handles both signals itself (it finishes its step first)."""
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+        yield
+        return
+
+    def terminate(signum: int, frame: object) -> None:
+        raise _Terminated()
+
+    before = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 def _interrupted() -> type[BaseException]:
@@ -717,7 +742,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     tune_allocator()  # keeps freed tensor memory for reuse: fewer page faults (ADNERF_TUNE_MALLOC=0: off)
     try:
-        with warnings.catch_warnings():
+        with _sigterm_as_interrupt(), warnings.catch_warnings():
             warnings.showwarning = lambda message, *rest, **kw: print(f"adnerf: warning: {message}", file=sys.stderr)
             return int(args.func(args))
     except _user_errors() as exc:
@@ -729,9 +754,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except _interrupted() as exc:
         print(f"adnerf: {exc}", file=sys.stderr)
         return 128 + exc.signum  # 130 for SIGINT, 143 for SIGTERM, as the shell reports a signal
-    except KeyboardInterrupt:
-        print("adnerf: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (_Terminated): what was finished is kept
+        print(f"adnerf: {str(exc) or 'interrupted'}", file=sys.stderr)
+        return 143 if isinstance(exc, _Terminated) else 130
 
 
 if __name__ == "__main__":

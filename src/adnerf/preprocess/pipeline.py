@@ -746,6 +746,10 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
         # Bad input (also a scene the dataset check rejects at the write step): nothing worth resuming.
         shutil.rmtree(work.folder, ignore_errors=True)
         raise
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the finished steps stay in the work folder
+        kept = [name for name in STEPS[:-1] if work.done(name)]
+        cut = next((name for name in STEPS if name not in kept), STEPS[-1])
+        raise type(exc)(f"stopped in the {cut} step; {len(kept)} finished step(s) kept in {work.folder} ({', '.join(kept) or 'none'}): the same command resumes there") from None
     finally:
         if not failed:
             shutil.rmtree(work.folder, ignore_errors=True)
