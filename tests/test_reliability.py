@@ -522,3 +522,39 @@ def test_sigterm_during_rendering_leaves_no_mp4_and_exits_143(run: Path, tmp_pat
     assert child.returncode == 143, seen + err
     assert "adnerf: interrupted" in err and "Traceback" not in err
     assert not out.exists() and not list(tmp_path.glob("*.mp4*"))  # nothing half-written under any name
+
+
+def test_a_full_disk_keeps_the_previous_checkpoint_and_says_so_in_one_line(scene: Path, run: Path, tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    import adnerf.model.run_folder as run_folder
+
+    resumed = tmp_path / "run"
+    shutil.copytree(run, resumed)
+    before = (resumed / "checkpoint.pt").read_bytes()
+    real = torch.save
+
+    def full(obj: object, f: object, *a: object, **k: object) -> None:  # half the checkpoint, then no space
+        real(obj, f, *a, **k)
+        with open(f, "r+b") as h:  # type: ignore[arg-type]
+            h.truncate(len(before) // 2)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(run_folder.torch, "save", full)
+    (tmp_path / "more.json").write_text(json.dumps({"head_iters": CFG["head_iters"] + 4}))
+    capsys.readouterr()
+    assert main(["train", str(scene), "-o", str(resumed), "--resume", "--config", str(tmp_path / "more.json"), "--stage", "head"]) == 2
+    err = capsys.readouterr().err  # after the training bar, closed first: one line of its own
+    lines = [line for line in err.splitlines() if line.startswith("adnerf:")]
+    assert len(lines) == 1 and "Traceback" not in err and lines[0].startswith(f"adnerf: error: {resumed}: the disk is full (") and "writing checkpoint.pt; the write had reached" in lines[0], err
+    assert (resumed / "checkpoint.pt").read_bytes() == before  # the previous checkpoint, intact
+    assert not [p.name for p in resumed.iterdir() if ".tmp" in p.name]  # no temporary left behind
+    monkeypatch.setattr(run_folder.torch, "save", real)
+    # The message gives the folder, the space free and how far the write got.
+    from adnerf.atomic import atomic_path
+
+    with pytest.raises(OSError, match=rf"{tmp_path}: the disk is full \(.* MiB free there\) writing x.bin; the write had reached 0.0 MiB"):
+        with atomic_path(tmp_path / "x.bin") as tmp:
+            tmp.write_bytes(b"12345")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert not (tmp_path / "x.bin").exists()

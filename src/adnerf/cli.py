@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import math
 import os
@@ -293,6 +294,7 @@ def _interrupted() -> type[BaseException]:
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     """Exceptions whose message is for the user (bad input), printed without a traceback."""
+    from .atomic import DiskFullError
     from .audio.features import FeatureError
     from .commands.render_video import RenderError
     from .io import MediaError
@@ -303,7 +305,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from .outputs import OutputError
     from .preprocess.pipeline import PreprocessError
 
-    return (DatasetError, FeatureError, FolderBusyError, MediaError, MemoryNeedError, OutputError, PreprocessError, RenderError, RunError)
+    return (DatasetError, DiskFullError, FeatureError, FolderBusyError, MediaError, MemoryNeedError, OutputError, PreprocessError, RenderError, RunError)
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -750,6 +752,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except CliError as exc:
         print(f"adnerf: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        from .atomic import disk_full  # a write outside atomic_path (frames of a dataset, PNGs)
+
+        message = disk_full(exc.filename) if exc.filename else "the disk is full (no space left on the device); free some space and run the same command again"
+        print(f"adnerf: error: {message}", file=sys.stderr)
         return 2
     except _interrupted() as exc:
         print(f"adnerf: {exc}", file=sys.stderr)

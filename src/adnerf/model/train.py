@@ -503,37 +503,38 @@ class Trainer:
         bar = tqdm(total=iters, initial=start_step, desc=f"train {stage}", unit="it", disable=not self.progress, dynamic_ncols=True)
         window_t, window_n, window_loss, window_mse, window_samples = time.perf_counter(), 0, 0.0, 0.0, self.samples
         done_here = 0
-        while getattr(self, f"{stage}_step") < iters:
-            if max_steps is not None and done_here >= max_steps:
-                break
-            step = getattr(self, f"{stage}_step")
-            t0 = time.perf_counter()
-            loss, mse = step_fn(step)
-            self.elapsed[stage] += time.perf_counter() - t0
-            setattr(self, f"{stage}_step", step + 1)
-            done_here += 1
-            window_n += 1
-            window_loss += loss
-            window_mse += mse
-            bar.update(1)
-            if (step + 1) % self.tcfg.log_every == 0 or step + 1 == iters:
-                now = time.perf_counter()
-                rays_per_s = window_n * self.tcfg.rays / max(now - window_t, 1e-9)
-                samples_per_s = (self.samples - window_samples) / max(now - window_t, 1e-9)
-                loss, mse = window_loss / window_n, window_mse / window_n
-                psnr = psnr_from_mse(mse)
-                window_t, window_n, window_loss, window_mse, window_samples = now, 0, 0.0, 0.0, self.samples
-                bar.set_postfix(loss=f"{loss:.2e}", psnr=f"{psnr:.2f}", rays_s=f"{rays_per_s:.0f}")
-                row = {"stage": stage, "step": step + 1, "loss": loss, "mse": mse, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
-                self.log({**row, "elapsed": self.elapsed[stage]})
-            if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
-                self.save()
-            if self.stop_signal is not None:
-                bar.close()
-                if (step + 1) % self.tcfg.checkpoint_every and step + 1 != iters:
+        try:  # the bar is closed before any error is printed
+            while getattr(self, f"{stage}_step") < iters:
+                if max_steps is not None and done_here >= max_steps:
+                    break
+                step = getattr(self, f"{stage}_step")
+                t0 = time.perf_counter()
+                loss, mse = step_fn(step)
+                self.elapsed[stage] += time.perf_counter() - t0
+                setattr(self, f"{stage}_step", step + 1)
+                done_here += 1
+                window_n += 1
+                window_loss += loss
+                window_mse += mse
+                bar.update(1)
+                if (step + 1) % self.tcfg.log_every == 0 or step + 1 == iters:
+                    now = time.perf_counter()
+                    rays_per_s = window_n * self.tcfg.rays / max(now - window_t, 1e-9)
+                    samples_per_s = (self.samples - window_samples) / max(now - window_t, 1e-9)
+                    loss, mse = window_loss / window_n, window_mse / window_n
+                    psnr = psnr_from_mse(mse)
+                    window_t, window_n, window_loss, window_mse, window_samples = now, 0, 0.0, 0.0, self.samples
+                    bar.set_postfix(loss=f"{loss:.2e}", psnr=f"{psnr:.2f}", rays_s=f"{rays_per_s:.0f}")
+                    row = {"stage": stage, "step": step + 1, "loss": loss, "mse": mse, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
+                    self.log({**row, "elapsed": self.elapsed[stage]})
+                if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
                     self.save()
-                raise TrainingInterrupted(self.stop_signal, stage, step + 1, iters)
-        bar.close()
+                if self.stop_signal is not None:
+                    if (step + 1) % self.tcfg.checkpoint_every and step + 1 != iters:
+                        self.save()
+                    raise TrainingInterrupted(self.stop_signal, stage, step + 1, iters)
+        finally:
+            bar.close()
 
     def batch_of(self, groups: list[tuple[int, torch.Tensor, FrameCondition]]) -> Batch:
         """This process's rays of a step's frames ``(frame, pixels (n,), condition)``, to render in
