@@ -32,7 +32,7 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Callable, Iterator, Literal
 
 import torch
 import torch.nn.functional as F
@@ -233,7 +233,7 @@ class TrainingInterrupted(Exception):
 
 
 @contextmanager
-def stop_on_signals(trainer: "Trainer"):  # noqa: ANN201
+def stop_on_signals(trainer: "Trainer") -> Iterator[None]:
     """While training, SIGINT and SIGTERM (Ctrl-C; a scheduler's notice before it kills) ask
     ``trainer`` to stop after its current step (:attr:`Trainer.stop_signal`); a second one
     stops at once. Outside the main thread (where Python delivers signals) nothing is changed."""

@@ -466,7 +466,7 @@ def _pose_segment(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray 
             return project_points(X[idx] @ P[i, :3, :3].T + P[i, :3, 3], K)
 
         tracks = extend_tracks(frames, labels, tracks, predict, track_cfg, reach=len(frames), limits=limits)
-        est = estimate_head_poses(tracks, labels, K, **kw)
+        est = estimate_head_poses(tracks, labels, K, **kw, initial=est)  # from the last pass's solution
         bar(f"pose: adjust{name}", k + 1, config.extend_passes)
     return est, tracks, chained_obs
 
