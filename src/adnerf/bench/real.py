@@ -22,7 +22,10 @@ Steps, each timed (the times go into the result):
    reference: over every frame with preprocessing's landmarks, and over the held-out frames for
    the true frames and for the render.
 
-The result is one dict (``--json`` prints it as one line) and ``WORK/bench_real.png``.
+The result is one dict (``--json`` prints it as one line) and ``WORK/bench_real.png``. Besides the
+metrics it holds the cost of the run: the seconds of each step above, the training seconds per
+step of each stage, the bytes a frame of the clip holds in memory while training (its uint8
+frame and labels) and the process's peak resident memory.
 """
 
 from __future__ import annotations
