@@ -339,7 +339,8 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
     extra = {} if args.pose_landmarks is None else {"pose_landmarks": args.pose_landmarks}
     cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, clothes=args.clothes, focal=args.focal, test_fraction=args.test_fraction, **extra)
-    report = preprocess_video(args.video, args.output, cfg, progress=step_bars(), overwrite=args.overwrite)
+    with step_bars() as bars:  # closed before an error line is printed
+        report = preprocess_video(args.video, args.output, cfg, progress=bars, overwrite=args.overwrite)
     keys = ("frames", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "face_clothes", "layers", "layers_warning", "torso", "torso_warning", "pose_reprojection_rms_px", "pose_landmark_rms_px", "plate_filled_fraction", "timings_s")
     print(json.dumps({k: report[k] for k in keys if k in report}, indent=1))
     print(f"{args.output}: dataset written (report: {args.output}/preprocess_report.json, .png)")

@@ -235,7 +235,8 @@ def bench_real(
         if (run_dir / "run.json").exists():  # it would go on training on a dataset it was not started on
             raise ValueError(f"{run_dir} was trained on the dataset of other preprocessing settings; remove it (or choose another --work) to train afresh")
         log(f"preprocessing {clip} into {data}")
-        preprocess_video(clip, data, pcfg, progress=step_bars() if progress else None, overwrite=data.exists())
+        with step_bars() as bars:
+            preprocess_video(clip, data, pcfg, progress=bars if progress else None, overwrite=data.exists())
     seconds["preprocess"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

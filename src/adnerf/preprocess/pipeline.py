@@ -36,7 +36,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -254,21 +254,36 @@ def _report_warning(doc: dict, key: str, msg: str) -> None:
     print(f"warning: {msg}", file=sys.stderr)
 
 
-def step_bars() -> Bar:
-    """A ``progress`` for :func:`preprocess_video` that shows one progress bar per step."""
-    from tqdm import tqdm
+class step_bars:
+    """A ``progress`` for :func:`preprocess_video` that shows one progress bar per step.
 
-    bars: dict[str, tqdm] = {}
+    Use it as a context manager: leaving the block closes the bars still open (an interrupted or
+    failed step's), so that the line printed after it starts on a line of its own.
+    """
 
-    def progress(step: str, done: int, total: int) -> None:
-        bar = bars.get(step)
+    def __init__(self) -> None:
+        self._bars: dict[str, Any] = {}
+
+    def __call__(self, step: str, done: int, total: int) -> None:
+        from tqdm import tqdm
+
+        bar = self._bars.get(step)
         if bar is None:
-            bar = bars[step] = tqdm(total=total, desc=step, unit="step" if total == 1 else "frame", leave=True)
+            bar = self._bars[step] = tqdm(total=total, desc=step, unit="step" if total == 1 else "frame", leave=True)
         bar.update(done - bar.n)
         if done >= total:
             bar.close()
 
-    return progress
+    def close(self) -> None:
+        """Close every bar still open."""
+        for bar in self._bars.values():
+            bar.close()
+
+    def __enter__(self) -> "step_bars":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def _skin_fraction(frame: np.ndarray, mask: np.ndarray) -> float:
