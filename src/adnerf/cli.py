@@ -338,10 +338,10 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
     extra = {} if args.pose_landmarks is None else {"pose_landmarks": args.pose_landmarks}
-    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, clothes=args.clothes, focal=args.focal, test_fraction=args.test_fraction, **extra)
+    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, clothes=args.clothes, focal=args.focal, test_fraction=args.test_fraction, fps=args.fps, **extra)
     with step_bars() as bars:  # closed before an error line is printed
         report = preprocess_video(args.video, args.output, cfg, progress=bars, overwrite=args.overwrite)
-    keys = ("frames", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "face_clothes", "layers", "layers_warning", "torso", "torso_warning", "pose_reprojection_rms_px", "pose_landmark_rms_px", "plate_filled_fraction", "timings_s")
+    keys = ("frames", "decode", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "face_clothes", "layers", "layers_warning", "torso", "torso_warning", "pose_reprojection_rms_px", "pose_landmark_rms_px", "plate_filled_fraction", "timings_s")
     print(json.dumps({k: report[k] for k in keys if k in report}, indent=1))
     print(f"{args.output}: dataset written (report: {args.output}/preprocess_report.json, .png)")
     return 0
@@ -666,6 +666,7 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--focal", type=_positive, default=None, help="focal length in pixels, > 0 (default 1.33 x the larger frame side)")
     pre.add_argument("--pose-landmarks", type=_number(float, 0.0, 1000.0), default=None, help="weight of a rigid landmark (nose, eye corners) against a flow track in the head-pose bundle adjustment, 0 to 1000 (default: PreprocessConfig.pose_landmarks, 30; 0: the tracks alone, as before)")
     pre.add_argument("--test-fraction", type=_number(float, 0.0, 0.9, open_lo=True), default=0.1, help="fraction of frames at the end held out for testing, in (0, 0.9]")
+    pre.add_argument("--fps", type=_number(float, 1.0, 240.0), default=None, help="frame rate of the dataset, 1 to 240: frames are placed on this constant rate by their timestamps, repeated or left out where a variable-rate file (phones) has gaps (default: the clip's nominal rate)")
     pre.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the video)")
     pre.set_defaults(func=_cmd_preprocess)
 

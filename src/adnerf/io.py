@@ -1,7 +1,9 @@
 """Video and audio I/O on PyAV (FFmpeg), with timestamps rather than assumed frame rates.
 
-* :func:`read_video` decodes a video's frames (uint8 RGB), the exact presentation time of every
-  frame, and optionally its audio track (mono float32, resampled on request).
+* :func:`read_video` decodes a video's frames (uint8 RGB, turned upright by the file's rotation
+  metadata, as phones write portrait video), the exact presentation time of every frame, and
+  optionally its audio track (mono float32, resampled on request). A file cut off mid-write
+  gives the frames that decode and says where it ends.
 * :func:`read_audio` decodes the audio of any file FFmpeg reads (wav, mp3, m4a, flac, mp4, ...).
 * :func:`write_video` encodes frames (h264) and an optional audio track (aac) into an mp4 with
   audio sample 0 at the time of frame 0; it writes to a temporary file and renames it into
@@ -70,12 +72,18 @@ class Video:
         timestamps: Presentation time of each frame in seconds, shape ``(N,)``, increasing.
         fps: Nominal frame rate reported by the container (informational: use ``timestamps``).
         audio: The audio track, or ``None`` when the file has none or it was not requested.
+        rotation: Degrees the frames were turned clockwise to stand upright, from the file's
+            display matrix (0, 90, 180 or 270; a portrait phone video gives 90).
+        truncated: ``None``, or why decoding stopped before the end the file declares (a copy
+            that did not finish): the frames are those that decoded.
     """
 
     frames: np.ndarray
     timestamps: np.ndarray
     fps: float
     audio: AudioTrack | None
+    rotation: int = 0
+    truncated: str | None = None
 
 
 def _open(path: str | Path):
@@ -88,7 +96,21 @@ def _open(path: str | Path):
     try:
         return av.open(str(p))
     except av.error.FFmpegError as exc:
-        raise MediaError(f"{p}: cannot open as media ({exc.strerror or exc})") from exc
+        hint = ""
+        if isinstance(exc, av.error.InvalidDataError) and p.suffix.lower() in (".mp4", ".mov", ".m4v", ".3gp"):
+            # An mp4 writes its index (the moov box) last unless it was made for streaming: a copy
+            # or recording that did not finish has frames but no index, and nothing can read it.
+            hint = "; if the file is an unfinished copy or recording (its end, where an mp4 keeps its index, is missing), copy or export it again"
+        raise MediaError(f"{p}: cannot open as media ({exc.strerror or exc}){hint}") from exc
+
+
+def _upright_turns(path: Path, rotation: float) -> int:
+    """Clockwise quarter turns that stand a frame upright, from FFmpeg's display rotation
+    (degrees counterclockwise, as ``VideoFrame.rotation`` gives it)."""
+    turns = -float(rotation) / 90.0
+    if abs(turns - round(turns)) > 1e-3:
+        raise MediaError(f"{path}: the file asks for a display rotation of {rotation:g} degrees; only quarter turns are supported")
+    return int(round(turns)) % 4
 
 
 def probe(path: str | Path) -> dict:
@@ -137,7 +159,9 @@ def frame_times(path: str | Path) -> np.ndarray:
     return np.sort(np.asarray(times, dtype=np.float64))
 
 
-def _decode_audio(path: Path, container, sample_rate: int | None) -> AudioTrack:
+def _decode_audio(path: Path, container, sample_rate: int | None, *, partial: list[str] | None = None) -> AudioTrack:
+    """The first audio stream, mono. With ``partial`` (a list), a stream that stops decoding part
+    way gives the samples before the fault and appends a line saying where; without, it raises."""
     av = _av()
     stream = container.streams.audio[0]
     target_rate = int(sample_rate or stream.rate or 0)
@@ -157,7 +181,9 @@ def _decode_audio(path: Path, container, sample_rate: int | None) -> AudioTrack:
         for out in resampler.resample(None):
             chunks.append(out.to_ndarray().mean(axis=0))
     except av.error.FFmpegError as exc:
-        raise MediaError(f"{path}: cannot decode the audio stream ({exc.strerror or exc})") from exc
+        if partial is None or not chunks:
+            raise MediaError(f"{path}: cannot decode the audio stream ({exc.strerror or exc})") from exc
+        partial.append(f"the audio stops decoding {sum(map(len, chunks)) / target_rate:.2f} s after its start ({exc.strerror or exc})")
     samples = np.concatenate(chunks).astype(np.float32) if chunks else np.zeros(0, np.float32)
     return AudioTrack(samples=samples, sample_rate=target_rate, start=start or 0.0)
 
@@ -185,7 +211,9 @@ def read_audio(path: str | Path, sample_rate: int | None = None) -> AudioTrack:
 def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None = None, max_frames: int | None = None) -> Video:
     """Decode a video's frames with their timestamps, and optionally its audio.
 
-    Variable frame rate input is handled: each frame carries its own presentation time.
+    Variable frame rate input is handled: each frame carries its own presentation time. A file
+    whose frames stop decoding before its declared end (cut off mid-write) gives the frames that
+    decode, with ``Video.truncated`` saying where it ends.
 
     Args:
         path: The video file.
@@ -203,31 +231,43 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
     """
     av = _av()
     p = Path(path)
+    truncated = None
+    turns = 0
     with _open(p) as container:
         stream = _video_stream(p, container)
         fps = float(stream.average_rate) if stream.average_rate else 0.0
-        count = min(int(stream.frames or 0), max_frames or int(stream.frames or 0))
+        declared = int(stream.frames or 0)
+        count = min(declared, max_frames or declared)
         if count and stream.codec_context.width:  # the container's frame count, where it gives one
             require(count * stream.codec_context.width * stream.codec_context.height * 3, f"{p}: {count} frames of {stream.codec_context.width}x{stream.codec_context.height} (decoded RGB)")
         frames: list[np.ndarray] = []
         times: list[float] = []
         try:
             for frame in container.decode(stream):
-                frames.append(frame.to_ndarray(format="rgb24"))
+                if not frames:
+                    turns = _upright_turns(p, getattr(frame, "rotation", 0) or 0)
+                rgb = frame.to_ndarray(format="rgb24")
+                frames.append(np.ascontiguousarray(np.rot90(rgb, -turns)) if turns else rgb)  # rot90 turns counterclockwise
                 times.append(float(frame.time) if frame.time is not None else len(times) / (fps or 25.0))
                 if max_frames is not None and len(frames) >= max_frames:
                     break
         except av.error.FFmpegError as exc:
             if not frames:
                 raise MediaError(f"{p}: cannot decode the video stream ({exc.strerror or exc})") from exc
-            raise MediaError(f"{p}: video is truncated or corrupt after frame {len(frames)} ({exc.strerror or exc})") from exc
+            of = f" of the {declared} the file declares" if declared else ""
+            truncated = f"decoding stopped after frame {len(frames)}{of}, {max(times):.2f} s in ({exc.strerror or exc})"
         if not frames:
             raise MediaError(f"{p}: the video stream has no decodable frames")
+        if truncated is None and max_frames is None and declared > len(frames) + max(2, declared // 100):
+            truncated = f"decoding stopped after frame {len(frames)} of the {declared} the file declares, {max(times):.2f} s in"
     track = None
     if audio:
         with _open(p) as container:
             if container.streams.audio:
-                track = _decode_audio(p, container, audio_rate)
+                faults: list[str] = []
+                track = _decode_audio(p, container, audio_rate, partial=faults)
+                if faults:
+                    truncated = "; ".join(x for x in (truncated, *faults) if x)
     order = np.argsort(np.asarray(times), kind="stable")
     stacked = np.empty((len(frames), *frames[0].shape), frames[0].dtype)
     for k, i in enumerate(order):  # each decoded frame freed once copied: the clip is held once, not twice
@@ -237,6 +277,8 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
         timestamps=np.asarray(times, dtype=np.float64)[order],
         fps=fps,
         audio=track,
+        rotation=90 * turns,
+        truncated=truncated,
     )
 
 

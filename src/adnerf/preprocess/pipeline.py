@@ -55,6 +55,7 @@ from ..model.data import (
 )
 from ..outputs import OutputError, check_folder_output
 from .clothes import complete_torso
+from .frame_grid import nominal_rate, regular_grid
 from .headpose import project_points
 from .landmarks import (
     NOSE_BASE,
@@ -109,6 +110,8 @@ class PreprocessConfig:
         test_fraction: Fraction of frames, at the end, held out for testing.
         head_width: Head width in scene units.
         min_seconds: Shortest accepted video.
+        fps: Frame rate of the dataset: the decoded frames are placed on a grid of this rate by
+            their timestamps (:mod:`.frame_grid`); ``None`` takes the clip's nominal rate.
         min_face_fraction: Fewest frames, as a fraction, that must show a face.
         extend_passes: Passes of re-observing tracks against their seed frames (0: chained tracks only).
         shape_sigma: Weight of the ellipsoid prior in bundle adjustment (0: none).
@@ -133,6 +136,7 @@ class PreprocessConfig:
     test_fraction: float = 0.1
     head_width: float = 1.6
     min_seconds: float = 2.0
+    fps: float | None = None
     min_face_fraction: float = 0.5
     extend_passes: int = 2
     shape_sigma: float = 0.0
@@ -172,13 +176,15 @@ class PreprocessConfig:
             raise PreprocessError(f"pose_overlap must lie in [2, pose_segment); got {self.pose_overlap} and {self.pose_segment}")
         if not (np.isfinite(self.pose_landmarks) and self.pose_landmarks >= 0):
             raise PreprocessError(f"pose_landmarks must be a finite weight >= 0; got {self.pose_landmarks}")
+        if self.fps is not None and not (np.isfinite(self.fps) and 1.0 <= self.fps <= 240.0):
+            raise PreprocessError(f"--fps must lie in [1, 240] frames per second; got {self.fps}")
         if not 0.0 < self.test_fraction < 0.5:
             raise PreprocessError(f"--test-fraction must lie in (0, 0.5); got {self.test_fraction}")
 
 
 # What each step's result depends on (a change re-runs the step and the ones after it).
 _STEP_KEYS = {
-    "decode": ("min_seconds",),
+    "decode": ("min_seconds", "fps"),
     "features": ("features",),
     "parse": ("parser", "min_face_fraction"),
     "face": ("face", "cut", "clothes"),
@@ -314,24 +320,49 @@ def _camera_motion(frames: np.ndarray, labels: np.ndarray, pairs: int = 8, gap: 
     return float(np.median(out)) if out else 0.0
 
 
-def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> None:
+def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
     v = read_video(video, audio=True)
-    n, h, w = v.frames.shape[:3]
-    seconds = float(v.timestamps[-1] - v.timestamps[0]) + (1.0 / v.fps if v.fps else 0.0)
+    doc: dict = {"source_frames": len(v.frames), "rotation_deg": v.rotation}
+    if v.truncated is not None:
+        _report_warning(doc, "truncated_warning", f"{video}: the file ends early ({v.truncated}); the frames that decode are used")
+    fps = float(config.fps or nominal_rate(v.timestamps, v.fps))
+    grid = regular_grid(v.timestamps, fps)
+    frames = v.frames if grid.identity else v.frames[grid.index]
+    del v.frames  # the source frames are not held twice
+    n, h, w = frames.shape[:3]
+    seconds = n / fps
     if seconds < config.min_seconds:
-        raise PreprocessError(f"{video}: the video is {seconds:.2f} s long; preprocessing needs at least {config.min_seconds:g} s")
+        raise PreprocessError(f"{video}: the video is {seconds:.2f} s long" + (" where it decodes" if v.truncated else "") + f"; preprocessing needs at least {config.min_seconds:g} s")
     if v.audio is None and config.features != "none":
         raise PreprocessError(f"{video}: the video has no audio track (use --features none to make a silent dataset)")
-    fps = v.fps if v.fps > 0 else (n - 1) / max(v.timestamps[-1] - v.timestamps[0], 1e-9)
-    work.save("frames", v.frames)
-    work.save("times", v.timestamps - v.timestamps[0])
+    doc.update(fps=fps, duplicated=grid.duplicated, dropped=grid.dropped)
+    if not grid.identity:
+        _report_warning(
+            doc,
+            "timing_warning",
+            f"{video}: the frames do not come at a constant rate (variable frame rate): placed on a {fps:g} fps grid by their timestamps, "
+            f"{grid.duplicated} frame(s) repeated where the file skipped one and {grid.dropped} left out where two fell in one slot (--fps sets the rate)",
+        )
+    work.save("frames", frames)
+    work.save("times", grid.times)
     if v.audio is not None:
-        # Sample 0 of the dataset's audio plays with frame 0: shift the audio to the first frame's time.
-        skip = int(round((v.timestamps[0] - v.audio.start) * v.audio.sample_rate))
+        # Sample 0 of the dataset's audio plays with frame 0: shift the audio to the first frame's time,
+        # pad what it lacks at either end with silence and cut what it has past the last frame.
+        rate = v.audio.sample_rate
+        skip = int(round((v.timestamps[0] - v.audio.start) * rate))
         samples = v.audio.samples[skip:] if skip >= 0 else np.concatenate([np.zeros(-skip, np.float32), v.audio.samples])
-        write_wav(work.folder / "audio.wav", AudioTrack(samples, v.audio.sample_rate, 0.0))
-    work.save_json("decode", {"fps": fps, "n": n, "width": w, "height": h, "seconds": seconds, "audio": v.audio is not None})
+        need = int(round(seconds * rate))
+        short = need - len(samples)
+        samples = samples[:need] if short <= 0 else np.concatenate([samples, np.zeros(short, np.float32)])
+        late, early = max(-skip, 0) / rate, max(short, 0) / rate
+        doc.update(audio_late_s=round(late, 3), audio_short_s=round(early, 3))
+        gaps = [f"starts {late:.2f} s after the first frame" if late > 1.0 / fps else "", f"ends {early:.2f} s before the last frame" if early > 1.0 / fps else ""]
+        if any(gaps):
+            _report_warning(doc, "audio_warning", f"{video}: the audio track {' and '.join(g for g in gaps if g)}: padded with silence there (the mouth of those frames is trained on silence)")
+        write_wav(work.folder / "audio.wav", AudioTrack(samples.astype(np.float32), rate, 0.0))
+    work.save_json("decode", {"fps": fps, "n": n, "width": w, "height": h, "seconds": seconds, "audio": v.audio is not None, "doc": doc})
     bar("decode", 1, 1)
+    return doc
 
 
 def _step_features(work: _Work, config: PreprocessConfig, bar: Bar) -> None:
@@ -657,6 +688,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         "fps": info["fps"],
         "seconds": info["seconds"],
         "config": asdict(config),
+        "decode": docs.get("decode", {}),
         **{f"parse_{k}": v for k, v in docs["parse"].items()},
         **{f"face_{k}": v for k, v in docs["face"].items()},
         **{f"pose_{k}": v for k, v in docs["pose"].items()},
@@ -739,11 +771,13 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
             if work.done(step):
                 if step in ("parse", "face", "pose", "plate"):
                     docs[step] = work.load_json(step)
+                elif step == "decode":
+                    docs[step] = work.load_json(step).get("doc", {})
                 bar(f"{step} (done before)", 1, 1)
                 continue
             t0 = time.perf_counter()
             if step == "decode":
-                _step_decode(video, work, config, bar)
+                docs[step] = _step_decode(video, work, config, bar)
             elif step == "features":
                 _step_features(work, config, bar)
             elif step == "parse":
