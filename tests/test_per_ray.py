@@ -76,21 +76,36 @@ def test_one_call_for_several_frames_renders_what_a_call_per_frame_does(layer: s
         lay.occupancy = None
     rays, batch, which = _frames_of_rays(meta)
     apart = [lay.render(rays, c) for c in conds]
-    together = lay.render(batch, FrameCondition.of_rays(conds, which))
+    per_ray = FrameCondition.of_rays(conds, which)
+    together = lay.render(batch, per_ray)
+    same = torch.ones(len(which), dtype=torch.bool)
+    if occupancy:
+        # A coarse sample that lies on a face between an occupied and an empty cell (the samples'
+        # regular spacing puts some there) is classified by rounding at 1e-14, which a batched and
+        # a single pose transform do differently: either answer is right. Such rays are compared
+        # only after showing that every disagreement of the two is such a tie.
+        sampler = lay.renderer(rays.origins).coarse_sampler
+        at_once = sampler(lay.to_space(batch, per_ray.pose)).positions()
+        one_by_one = torch.cat([sampler(lay.to_space(rays, c.pose)).positions() for c in conds])
+        flip = grid.is_occupied(at_once) != grid.is_occupied(one_by_one)
+        rel = (at_once[flip] - grid.aabb_min) / grid.cell_size
+        assert not flip.any() or float((rel - rel.round()).abs().min(dim=-1).values.max()) < 1e-9  # ties only
+        same = ~flip.any(dim=-1)
+        assert float(same.double().mean()) > 0.97
     for part in ("coarse", "fine"):
         for key in ("rgb", "opacity", "depth"):
-            want = torch.cat([getattr(getattr(o, part), key) for o in apart])
-            got = getattr(getattr(together, part), key)
+            want = torch.cat([getattr(getattr(o, part), key) for o in apart])[same]
+            got = getattr(getattr(together, part), key)[same]
             assert torch.allclose(got, want, atol=1e-5, rtol=1e-5), (part, key, float((got - want).abs().max()))
     # The frames differ, so a batch rendered under one frame's condition would not pass.
     first = torch.cat([apart[0].final.rgb] * FRAMES)
     assert float((together.final.rgb - first).detach().abs().max()) > 0.05
     # Gradients reach each frame's own audio code as they do from its own call.
-    (torch.cat([o.final.rgb for o in apart]).sum()).backward()
+    (torch.cat([o.final.rgb for o in apart])[same].sum()).backward()
     want_grads = [c.audio.grad.clone() for c in conds]
     for c in conds:
         c.audio.grad = None
-    together.final.rgb.sum().backward()
+    together.final.rgb[same].sum().backward()
     for c, want in zip(conds, want_grads):
         assert want.abs().max() > 0
         assert torch.allclose(c.audio.grad, want, atol=1e-5, rtol=1e-4)
