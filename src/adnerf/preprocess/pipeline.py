@@ -346,14 +346,16 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
     work.save("frames", frames)
     work.save("times", grid.times)
     if v.audio is not None:
-        # Sample 0 of the dataset's audio plays with frame 0: shift the audio to the first frame's time,
-        # pad what it lacks at either end with silence and cut what it has past the last frame.
+        # Sample 0 of the dataset's audio plays with frame 0: shift the audio to the first frame's time
+        # and pad what it lacks at either end with silence (audio past the last frame is kept: the
+        # last frames' feature windows reach into it).
         rate = v.audio.sample_rate
         skip = int(round((v.timestamps[0] - v.audio.start) * rate))
         samples = v.audio.samples[skip:] if skip >= 0 else np.concatenate([np.zeros(-skip, np.float32), v.audio.samples])
         need = int(round(seconds * rate))
         short = need - len(samples)
-        samples = samples[:need] if short <= 0 else np.concatenate([samples, np.zeros(short, np.float32)])
+        if short > 0:
+            samples = np.concatenate([samples, np.zeros(short, np.float32)])
         late, early = max(-skip, 0) / rate, max(short, 0) / rate
         doc.update(audio_late_s=round(late, 3), audio_short_s=round(early, 3))
         gaps = [f"starts {late:.2f} s after the first frame" if late > 1.0 / fps else "", f"ends {early:.2f} s before the last frame" if early > 1.0 / fps else ""]
