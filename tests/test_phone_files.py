@@ -185,3 +185,25 @@ def test_a_file_that_decodes_too_little_is_refused_in_one_line(scene: Path, tmp_
     lines = [line for line in err.splitlines() if line.startswith("adnerf:")]
     assert len(lines) == 1 and "where it decodes; preprocessing needs at least 2 s" in lines[0] and "ends early" in err
     assert not (tmp_path / "data").exists()
+
+
+def test_fps_on_a_steady_clip_says_it_resamples_not_that_the_clip_is_variable(tmp_path: Path) -> None:
+    from adnerf.preprocess.pipeline import PreprocessConfig, _step_decode, _Work
+
+    frames = _pattern(n=60)
+    rate = 16000
+    audio = 0.1 * np.sin(np.arange(2 * rate) / 10.0).astype(np.float32)
+    steady = write_phone_file(tmp_path / "steady.mp4", frames, np.arange(60) / 30.0, audio, rate)
+
+    def decode(fps: float | None) -> dict:
+        config = PreprocessConfig(fps=fps, min_seconds=1.0)
+        return _step_decode(steady, _Work(tmp_path / f"work{fps}", steady, config), config, lambda *a: None)
+
+    assert "timing_warning" not in decode(None) and "timing_warning" not in decode(30.0)
+    doc = decode(25.0)
+    assert doc["fps"] == 25.0 and (doc["duplicated"], doc["dropped"]) == (0, 10)
+    assert doc["timing_warning"].endswith("--fps 25 resamples the clip's steady 30 fps by its timestamps, 0 frame(s) repeated and 10 left out")
+    # A clip that is not steady keeps the variable-rate wording under --fps too.
+    jitter = write_phone_file(tmp_path / "jitter.mp4", frames[:59], np.array([t for i, t in enumerate(np.arange(60) / 30.0) if i != 20]), audio, rate)
+    config = PreprocessConfig(fps=30.0, min_seconds=1.0)
+    assert "variable frame rate" in _step_decode(jitter, _Work(tmp_path / "workj", jitter, config), config, lambda *a: None)["timing_warning"]

@@ -62,6 +62,13 @@ class AudioTrack:
         """Length in seconds."""
         return len(self.samples) / self.sample_rate
 
+    def starting_at(self, time: float) -> "AudioTrack":
+        """The track from ``time`` (container clock) on, as a track whose sample 0 plays then
+        (``start`` 0): cut where the track began earlier, led by silence where it began later."""
+        skip = int(round((time - self.start) * self.sample_rate))
+        samples = self.samples[skip:] if skip >= 0 else np.concatenate([np.zeros(-skip, self.samples.dtype), self.samples])
+        return AudioTrack(samples, self.sample_rate, 0.0)
+
 
 @dataclass
 class Video:
@@ -242,6 +249,11 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
             require(count * stream.codec_context.width * stream.codec_context.height * 3, f"{p}: {count} frames of {stream.codec_context.width}x{stream.codec_context.height} (decoded RGB)")
         frames: list[np.ndarray] = []
         times: list[float] = []
+
+        def stopped(why: str) -> str:
+            of = f" of the {declared} the file declares" if declared else ""
+            return f"decoding stopped after frame {len(frames)}{of}, {max(times):.2f} s in{why}"
+
         try:
             for frame in container.decode(stream):
                 if not frames:
@@ -254,12 +266,11 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
         except av.error.FFmpegError as exc:
             if not frames:
                 raise MediaError(f"{p}: cannot decode the video stream ({exc.strerror or exc})") from exc
-            of = f" of the {declared} the file declares" if declared else ""
-            truncated = f"decoding stopped after frame {len(frames)}{of}, {max(times):.2f} s in ({exc.strerror or exc})"
+            truncated = stopped(f" ({exc.strerror or exc})")
         if not frames:
             raise MediaError(f"{p}: the video stream has no decodable frames")
         if truncated is None and max_frames is None and declared > len(frames) + max(2, declared // 100):
-            truncated = f"decoding stopped after frame {len(frames)} of the {declared} the file declares, {max(times):.2f} s in"
+            truncated = stopped("")
     track = None
     if audio:
         with _open(p) as container:

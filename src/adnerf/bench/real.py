@@ -51,7 +51,7 @@ def resized_video(video: str | Path, size: int | None, folder: Path) -> tuple[Pa
     """The clip with its longer side ``size`` pixels (even sizes; ``None``: the clip itself),
     written once into ``folder`` and reused; returns its path and ``{width, height, clip_frames,
     fps, source_size}``."""
-    from ..io import AudioTrack, frame_times, probe, read_video, write_video
+    from ..io import frame_times, probe, read_video, write_video
 
     src = Path(video)
     meta = probe(src)  # no decoding: a cached copy is reused without reading the clip's frames
@@ -65,11 +65,8 @@ def resized_video(video: str | Path, size: int | None, folder: Path) -> tuple[Pa
     if not out.exists():
         video_data = read_video(src)
         frames = np.stack([cv2.resize(f, (nw, nh), interpolation=cv2.INTER_AREA) for f in video_data.frames])
-        audio = video_data.audio
-        if audio is not None:  # write_video plays sample 0 with frame 0: align the track to it
-            skip = int(round((float(video_data.timestamps[0]) - audio.start) * audio.sample_rate))
-            samples = audio.samples[skip:] if skip >= 0 else np.concatenate([np.zeros(-skip, audio.samples.dtype), audio.samples])
-            audio = AudioTrack(samples, audio.sample_rate, 0.0)
+        # write_video plays sample 0 with frame 0: align the track to it
+        audio = None if video_data.audio is None else video_data.audio.starting_at(float(video_data.timestamps[0]))
         write_video(out, frames, video_data.fps, audio)
     return out, {**info, "width": nw, "height": nh}
 

@@ -337,12 +337,15 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
         raise PreprocessError(f"{video}: the video has no audio track (use --features none to make a silent dataset)")
     doc.update(fps=fps, duplicated=grid.duplicated, dropped=grid.dropped)
     if not grid.identity:
-        _report_warning(
-            doc,
-            "timing_warning",
-            f"{video}: the frames do not come at a constant rate (variable frame rate): placed on a {fps:g} fps grid by their timestamps, "
-            f"{grid.duplicated} frame(s) repeated where the file skipped one and {grid.dropped} left out where two fell in one slot (--fps sets the rate)",
-        )
+        own = nominal_rate(v.timestamps, v.fps)
+        if config.fps and regular_grid(v.timestamps, own).identity:  # a steady clip, asked for another rate
+            why = f"--fps {fps:g} resamples the clip's steady {own:g} fps by its timestamps, {grid.duplicated} frame(s) repeated and {grid.dropped} left out"
+        else:
+            why = (
+                f"the frames do not come at a constant rate (variable frame rate): placed on a {fps:g} fps grid by their timestamps, "
+                f"{grid.duplicated} frame(s) repeated where the file skipped one and {grid.dropped} left out where two fell in one slot (--fps sets the rate)"
+            )
+        _report_warning(doc, "timing_warning", f"{video}: {why}")
     work.save("frames", frames)
     work.save("times", grid.times)
     if v.audio is not None:
@@ -350,13 +353,12 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
         # and pad what it lacks at either end with silence (audio past the last frame is kept: the
         # last frames' feature windows reach into it).
         rate = v.audio.sample_rate
-        skip = int(round((v.timestamps[0] - v.audio.start) * rate))
-        samples = v.audio.samples[skip:] if skip >= 0 else np.concatenate([np.zeros(-skip, np.float32), v.audio.samples])
-        need = int(round(seconds * rate))
-        short = need - len(samples)
+        late = max(v.audio.start - float(v.timestamps[0]), 0.0)
+        samples = v.audio.starting_at(float(v.timestamps[0])).samples
+        short = int(round(seconds * rate)) - len(samples)
         if short > 0:
             samples = np.concatenate([samples, np.zeros(short, np.float32)])
-        late, early = max(-skip, 0) / rate, max(short, 0) / rate
+        early = max(short, 0) / rate
         doc.update(audio_late_s=round(late, 3), audio_short_s=round(early, 3))
         gaps = [f"starts {late:.2f} s after the first frame" if late > 1.0 / fps else "", f"ends {early:.2f} s before the last frame" if early > 1.0 / fps else ""]
         if any(gaps):
