@@ -15,8 +15,9 @@ Layout (format ``adnerf-dataset``, version 1)::
                            clip, 0: closed), the head's eye condition; from the landmarks' eye
                            aspect ratio (adnerf preprocess, import-adnerf) or exact (synth)
       landmarks.npy        optional: (N, 68, 2) float64 face landmarks (iBUG layout, pixel centres at
-                           +0.5) from adnerf preprocess or an imported AD-NeRF folder; training does
-                           not read them (the mouth point in meta.json was derived from them)
+                           +0.5) from adnerf preprocess or an imported AD-NeRF folder; the mouth
+                           point in meta.json was derived from them, and training asks the audio
+                           code to predict their mouth opening and width (model/mouth_target.py)
       truth/               synthetic scenes only: poses.npy, parsing.npy (N, H, W) uint8,
                            depth.npy (N, H, W) float32 (distance along the unit pixel ray,
                            +inf where no surface), jaw.npy (N,) mouth opening in [0, 1],
@@ -196,6 +197,8 @@ class TalkingHeadDataset:
         audio: The audio track.
         truth: :class:`Truth` for synthetic scenes, else ``None``.
         eye: ``(N,)`` float32 eye openness (``eye.npy``), ``None`` when the dataset has none.
+        landmarks: ``(N, 68, 2)`` float64 face landmarks (``landmarks.npy``), ``None`` when the
+            dataset has none.
     """
 
     root: Path
@@ -208,10 +211,13 @@ class TalkingHeadDataset:
     audio: AudioTrack
     truth: Truth | None = field(default=None, repr=False)
     eye: np.ndarray | None = None
+    landmarks: np.ndarray | None = None
 
     def fingerprint(self) -> str:
         """SHA-256 of the dataset's content (metadata, frames, parsing, plate, poses, features,
-        audio): equal for the same data wherever the folder lies, different after any change."""
+        audio): equal for the same data wherever the folder lies, different after any change.
+        The landmarks are left out: they are found in the frames, and runs trained before
+        training read them keep their fingerprint."""
         h = hashlib.sha256(json.dumps(self.meta.to_dict(), sort_keys=True).encode())
         arrays = [self.frames, self.parsing, self.background, self.poses, self.features, self.audio.samples]
         for arr in arrays + ([] if self.eye is None else [self.eye]):  # datasets without eyes keep their fingerprint
@@ -475,9 +481,12 @@ def load_dataset(root: str | Path, *, truth: bool = True) -> TalkingHeadDataset:
         raise DatasetError(str(exc)) from exc
     eye = np.load(root / "eye.npy") if (root / "eye.npy").exists() else None
     _check_eye(eye, n, str(root))
+    landmarks = np.load(root / "landmarks.npy") if (root / "landmarks.npy").exists() else None
+    if landmarks is not None and landmarks.shape != (n, 68, 2):
+        raise DatasetError(f"{root}: landmarks.npy has shape {landmarks.shape}; expected ({n}, 68, 2)")
     tr = None
     if truth and (root / "truth").is_dir():
         t = root / "truth"
         true_eye = np.load(t / "eye.npy") if (t / "eye.npy").exists() else None
         tr = Truth(np.load(t / "poses.npy"), np.load(t / "parsing.npy"), np.load(t / "depth.npy"), np.load(t / "jaw.npy"), true_eye)
-    return TalkingHeadDataset(root, meta, frames, parsing, background, poses, features, audio, tr, eye)
+    return TalkingHeadDataset(root, meta, frames, parsing, background, poses, features, audio, tr, eye, landmarks)

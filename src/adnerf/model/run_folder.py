@@ -120,7 +120,7 @@ def read_run_doc(root: Path) -> dict:
 
 def stored_config(root: str | Path) -> TrainConfig:
     """The training schedule stored in a run folder's ``run.json``."""
-    return TrainConfig.from_dict(read_run_doc(Path(root))["train"])
+    return TrainConfig.from_stored(read_run_doc(Path(root))["train"])
 
 
 CHECKPOINT_KEYS = ("model", "opt_head", "opt_torso", "generator", "head_step", "torso_step", "elapsed")
@@ -154,7 +154,7 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     ckpt_path = root / "checkpoint.pt"
     ckpt = read_checkpoint(ckpt_path, device)
     model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
-    tcfg = TrainConfig.from_dict(doc["train"])
+    tcfg = TrainConfig.from_stored(doc["train"])
     load_model_state(model, ckpt["model"], ckpt_path, scheduled_smoothing(tcfg, ckpt["head_step"]))
     model.eval()
     owner = lock_owner(root)

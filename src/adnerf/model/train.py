@@ -10,7 +10,10 @@ and which is a small part of the head). AudioAttNet is switched on after ``att_s
 iterations.
 
 Losses: the MSE of the coarse and fine colours, plus ``mask_weight`` times the MSE of their
-opacities against the parsing mask of the layer being trained.
+opacities against the parsing mask of the layer being trained; in stage 1, when the dataset has
+landmarks, plus ``lip_weight`` times the error of a linear read-out of the audio codes predicting
+the lip landmarks' opening and width (:mod:`adnerf.model.mouth_target`), so that the audio code
+carries how open the mouth is and not only what the few mouth rays of a step teach it.
 
 Stage 2 (``torso``) freezes the head and the audio encoders and trains the torso fields on the full
 frames, composited with the stage-1 head in the model's order: the head in front (the default,
@@ -60,6 +63,7 @@ from .data import (
 )
 from .distributed import Ranks, init_ranks
 from .masks import BitRows
+from .mouth_target import MouthProbe, mouth_targets
 from .run_folder import (
     RESUMABLE,
     Run,
@@ -111,12 +115,13 @@ Part = tuple[RenderOutput, torch.Tensor, torch.Tensor, "torch.Tensor | None"]
 None)``; the mask is the opacity's target on the ``held`` rays (``None``: all of them)."""
 
 
-def _optimise(parts: list[Part], mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks()) -> tuple[float, float]:
+def _optimise(parts: list[Part], mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks(), extra: "tuple[torch.Tensor, float, torch.optim.Optimizer] | None" = None) -> tuple[float, float]:
     """One step on the MSE of the coarse and fine colours plus ``mask_weight`` times the MSE of
     their opacities against the parsing mask (on the rays it holds; the others count 0), over the
-    rays of every part together (each part's mean weighted by its share of the rays); returns
-    ``(loss, fine colour MSE)``, averaged over the processes (whose gradients are averaged before
-    the step)."""
+    rays of every part together (each part's mean weighted by its share of the rays), plus
+    ``weight`` times the loss of ``extra = (loss, weight, its own optimizer)`` (the mouth target,
+    whose read-out has its own optimizer); returns ``(loss, fine colour MSE)``, averaged over the
+    processes (whose gradients are averaged before the step)."""
     total = sum(len(target) for _, target, _, _ in parts)
     loss = fine_mse = 0.0
     for out, target, mask, held in parts:
@@ -129,11 +134,16 @@ def _optimise(parts: list[Part], mask_weight: float, optimizer: torch.optim.Opti
                 error = (composite.opacity.float() - m).square()
                 part = part + mask_weight * (error.mean() if held is None else (error * held).mean())
         loss, fine_mse = loss + share * part, fine_mse + share * part_fine
-    optimizer.zero_grad(set_to_none=True)
+    optimizers = [optimizer] if extra is None else [optimizer, extra[2]]
+    if extra is not None:
+        loss = loss + extra[1] * extra[0]
+    for opt in optimizers:
+        opt.zero_grad(set_to_none=True)
     if loss.requires_grad:  # False when empty-space skipping left no sample on any ray
         loss.backward()
-    if ranks.average_gradients([q for group in optimizer.param_groups for q in group["params"]]):
-        optimizer.step()
+    if ranks.average_gradients([q for opt in optimizers for group in opt.param_groups for q in group["params"]]):
+        for opt in optimizers:
+            opt.step()
     return tuple(ranks.mean([float(loss.detach()), float(fine_mse.detach())]))  # type: ignore[return-value]
 
 
@@ -317,6 +327,18 @@ class Trainer:
             **fused,
         )
         self.opt_torso = torch.optim.Adam(list(m.layers["torso"].parameters()), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
+        # The mouth targets the audio code is asked to predict (stage 1), from the landmarks.
+        self.mouth_probe: MouthProbe | None = None
+        self.lip_window: list[torch.Tensor] = []
+        if tcfg.lip_weight > 0 and ds.landmarks is not None:
+            try:
+                targets, valid = mouth_targets(ds.landmarks, ds.meta.train)
+            except ValueError as exc:
+                raise RunError(f"{ds.root}/landmarks.npy: {exc}; train with {{\"lip_weight\": 0}} (--config) to go on without the mouth target") from exc
+            self.mouth = torch.as_tensor(targets, device=device)
+            self.lip_pool = self.train_frames[torch.as_tensor(valid)[self.train_frames]]
+            self.mouth_probe = MouthProbe(mcfg.audio_dim).to(device)
+            self.opt_probe = torch.optim.Adam(self.mouth_probe.parameters(), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.head_step = self.torso_step = 0
         self.elapsed = {"head": 0.0, "torso": 0.0}
@@ -368,6 +390,8 @@ class Trainer:
             "torso_step": self.torso_step,
             "elapsed": self.elapsed,
         }
+        if self.mouth_probe is not None:
+            state["mouth_probe"] = {"model": self.mouth_probe.state_dict(), "opt": self.opt_probe.state_dict()}
         save_atomic(state, self.root / "checkpoint.pt")
 
     def load(self, ckpt: dict) -> None:
@@ -378,6 +402,9 @@ class Trainer:
         self.opt_torso.load_state_dict(ckpt["opt_torso"])
         self.generator.set_state(ckpt["generator"].cpu())  # loaded with map_location=device
         self.head_step, self.torso_step, self.elapsed = ckpt["head_step"], ckpt["torso_step"], ckpt["elapsed"]
+        if self.mouth_probe is not None and "mouth_probe" in ckpt:
+            self.mouth_probe.load_state_dict(ckpt["mouth_probe"]["model"])
+            self.opt_probe.load_state_dict(ckpt["mouth_probe"]["opt"])
         log = self.root / "log.jsonl"
         if log.exists() and self.ranks.main:
             done = {"head": self.head_step, "torso": self.torso_step}
@@ -484,6 +511,19 @@ class Trainer:
         """Frame ``frame``'s condition: its audio code, head pose and (when the head reads it) eye openness."""
         return self.model.condition(code, pose, None if self.eye is None else self.eye[frame])
 
+    def mouth_loss(self) -> "tuple[torch.Tensor, float, torch.optim.Optimizer] | None":
+        """The mouth-target term of a stage-1 step, ``(loss, lip_weight, the read-out's
+        optimizer)``: the read-out's error on the audio codes (as the step makes them, AudioAttNet's
+        filtering included once on) of ``lip_frames`` training frames drawn with replacement;
+        ``None`` without it (no random draw is made then)."""
+        if self.mouth_probe is None:
+            return None
+        k = torch.randint(len(self.lip_pool), (self.tcfg.lip_frames,), generator=self.generator)
+        frames = self.lip_pool[k].to(self.device)
+        loss = self.mouth_probe.loss(self.model.frame_codes(self.windows, frames), self.mouth[frames])
+        self.lip_window.append(loss.detach())  # the log's "lip": the window's mean (read when a line is written)
+        return loss, self.tcfg.lip_weight, self.opt_probe
+
     def head_target(self, frame: int | torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
         """Stage-1 target colours ``(R, 3)`` of pixels ``pix`` of ``frame`` (or of each ray's frame
         ``(R,)``): the frame on head pixels, the plate elsewhere."""
@@ -526,6 +566,8 @@ class Trainer:
                     window_t, window_n, window_loss, window_mse, window_samples = now, 0, 0.0, 0.0, self.samples
                     bar.set_postfix(loss=f"{loss:.2e}", psnr=f"{psnr:.2f}", rays_s=f"{rays_per_s:.0f}")
                     row = {"stage": stage, "step": step + 1, "loss": loss, "mse": mse, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
+                    if self.lip_window:  # the mouth target's error (standardised units; 1: no better than the mean mouth)
+                        row["lip"], self.lip_window = float(torch.stack(self.lip_window).mean()), []
                     self.log({**row, "elapsed": self.elapsed[stage]})
                 if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
                     self.save()
@@ -599,7 +641,8 @@ class Trainer:
             eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
                 groups.append(eye_batch)
-            return _optimise([self.head_part(self.batch_of(groups))], tcfg.mask_weight, self.opt_head, self.ranks)
+            part = self.head_part(self.batch_of(groups))
+            return _optimise([part], tcfg.mask_weight, self.opt_head, self.ranks, self.mouth_loss())
 
         self._loop("head", tcfg.head_iters, step_fn, max_steps)
 
@@ -716,7 +759,7 @@ def train(
             raise RunError(f"{root}: nothing to resume (no run.json); drop --resume to start a new run")
         doc = read_run_doc(root)
         mcfg = ModelConfig.from_dict(doc["model"])
-        tcfg = resumed_config(TrainConfig.from_dict(doc["train"]), config)
+        tcfg = resumed_config(TrainConfig.from_stored(doc["train"]), config)
         check_same_dataset(doc, ds, dataset, root)
         if (root / "checkpoint.pt").exists():
             ckpt = read_checkpoint(root / "checkpoint.pt", device)

@@ -49,6 +49,11 @@ class TrainConfig:
             Measured on the demo scene (held-out ``blink_corr``) with the eye rays taken out of
             the main batch instead: 0.1 and 0.25 left the eyes ignored (-0.08); 0.25 and 0.5 gave
             0.57 but cost the mouth crop 0.8 dB (26.4 -> 25.6) by drawing half the frames among 18.
+        lip_weight: Weight of the mouth-target loss in stage 1 (:mod:`adnerf.model.mouth_target`):
+            a linear read-out of the audio code predicts the lip landmarks' standardised opening
+            and width, on ``lip_frames`` training frames a step. 0, or a dataset without
+            ``landmarks.npy``, trains the audio code from the photometric loss alone (AD-NeRF's).
+        lip_frames: Training frames whose audio codes the mouth-target loss reads each step.
         torso_person_rays: Fraction of each stage-2 batch drawn among the frame's torso pixels
             (the rest uniformly in the torso box, which is mostly background).
         mask_weight: Weight of the opacity loss against the parsing (stage 1: head pixels opaque,
@@ -77,6 +82,8 @@ class TrainConfig:
     mouth_rays: float = 0.25
     eye_rays: float = 0.25
     blink_frames: float = 0.5
+    lip_weight: float = 0.01
+    lip_frames: int = 64
     torso_person_rays: float = 0.5
     mask_weight: float = 0.1
     occupancy_start: float = 0.1
@@ -151,12 +158,21 @@ class TrainConfig:
             raise ValueError(f"frames must be >= 1 and divide rays ({self.rays}); got {self.frames}")
         if self.amp not in AMP_MODES:
             raise ValueError(f"amp must be one of {AMP_MODES}; got {self.amp!r}")
-        if self.mask_weight < 0:
-            raise ValueError("mask_weight must be >= 0")
+        if self.mask_weight < 0 or self.lip_weight < 0:
+            raise ValueError("mask_weight and lip_weight must be >= 0")
+        if self.lip_frames < 1:
+            raise ValueError(f"lip_frames must be >= 1; got {self.lip_frames}")
         if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1 and 0 <= self.eye_rays <= 1 and 0 <= self.blink_frames <= 1):
             raise ValueError("mouth_rays, eye_rays, blink_frames and torso_person_rays must lie in [0, 1]")
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {PRESETS}; got {self.preset!r}")
+
+    @staticmethod
+    def from_stored(d: dict) -> "TrainConfig":
+        """The schedule a run folder stored (``run.json``'s ``"train"``): as :meth:`from_dict`, but
+        a key added after the run was written takes the value that run trained with
+        (:data:`LATER_KEYS`), not today's default."""
+        return TrainConfig.from_dict({**LATER_KEYS, **d} if isinstance(d, dict) else d)
 
     @staticmethod
     def from_dict(d: object, base: "TrainConfig | None" = None) -> "TrainConfig":
@@ -175,5 +191,8 @@ class TrainConfig:
 
 
 PRESETS = ("fast", "paper")
+LATER_KEYS: dict[str, object] = {"lip_weight": 0.0}
+"""Keys added to the schedule after runs were written without them, with the value those runs
+trained with (they trained the audio code from the photometric loss alone)."""
 _FIELD_TYPES: dict[str, type] = {f.name: {"int": int, "float": float, "str": str}[f.type] for f in fields(TrainConfig)}  # type: ignore[index]
 _TYPE_WORDS = {int: "an integer", float: "a number", str: "a string"}
