@@ -160,7 +160,13 @@ def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path, monkeypa
     # comparisons): other layers, a smaller person, and the report warns of the missing clothes.
     row = preprocess_video(scene / "video.mp4", tmp_path / "row", PreprocessConfig(focal=1.33 * 96, cut="neck-row", clothes="none"))
     assert "narrowest row" in row["face_head_torso_cut"] and "lip_in_head" in row["layers"]
-    assert row["face_clothes"] == "left as parsed" and "torso_warning" in row and row["torso"]["person_at_bottom"] < PERSON_AT_BOTTOM_MIN
+    # Without the completion the person covers less of the bottom edge; on this 96 px scene that is
+    # 78-81% (29 of 36 or 37 columns, the strip's width moving by a column from run to run), on
+    # both sides of the bar, so the report is held to warning exactly when it is under the bar.
+    completed = json.loads((out / "preprocess_report.json").read_text())["torso"]["person_at_bottom"]
+    share = row["torso"]["person_at_bottom"]
+    assert row["face_clothes"] == "left as parsed" and share < completed - 0.1
+    assert ("torso_warning" in row) == (share < PERSON_AT_BOTTOM_MIN)
     jaw, neck = load_dataset(out, truth=False).parsing, load_dataset(tmp_path / "row", truth=False).parsing
     assert not np.array_equal(jaw, neck) and ((jaw > 0) | ~(neck > 0)).all() and (jaw > 0).sum() > (neck > 0).sum()
     assert np.array_equal(jaw[neck == 0] > 0, jaw[neck == 0] == LABEL_TORSO)  # what was added is torso
