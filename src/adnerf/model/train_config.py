@@ -21,13 +21,8 @@ class TrainConfig:
 
     Attributes:
         head_iters: Stage-1 iterations.
-        torso_iters: Stage-2 iterations. Measured on the 18 s demo scene with its stage-1 head fixed:
-            2500 -> 4500 iterations raised the held-out torso PSNR from 23.0 to 24.1 dB and the
-            background's from 36.3 to 38.1 dB (full frame 29.2 -> 30.1), with the torso drawn over
-            the head (AD-NeRF's order, where it also covers head pixels). The torso gains more per
-            second than the head, so the default schedule gives it many. On the 30 s demo scene, 4000 -> 3000 iterations
-            cost 0.9 dB of full-frame held-out PSNR (31.4 -> 30.5) and nothing in the mouth crop
-            (26.5 dB both), and saved the 2 minutes that keep the demo within 15 minutes.
+        torso_iters: Stage-2 iterations (the torso gains more per second of training than the head;
+            ``docs/decisions.md``, *The torso stage's share of the schedule*).
         rays: Rays per iteration (an eye batch adds ``eye_rays * rays``).
         frames: Training frames each iteration (of either stage) draws its rays from,
             ``rays // frames`` each, every frame under its own audio code and pose (1: the paper's
@@ -46,9 +41,7 @@ class TrainConfig:
         blink_frames: Fraction of those eye batches whose frame is drawn among the blinking
             training frames (openness below 0.75), which are few (a blink is about 5 frames every
             2-6 s) and the only ones that teach the eye condition; the others among all frames.
-            Measured on the demo scene (held-out ``blink_corr``) with the eye rays taken out of
-            the main batch instead: 0.1 and 0.25 left the eyes ignored (-0.08); 0.25 and 0.5 gave
-            0.57 but cost the mouth crop 0.8 dB (26.4 -> 25.6) by drawing half the frames among 18.
+            (``docs/decisions.md``, *Half the eye batches at blinks*.)
         lip_weight: Weight of the mouth-target loss in stage 1 (:mod:`adnerf.model.mouth_target`):
             a linear read-out of the audio code predicts the lip landmarks' standardised opening
             and width, on ``lip_frames`` training frames a step. 0, or a dataset without
@@ -105,18 +98,8 @@ class TrainConfig:
         many rays as before; fractions of a stage are kept.
 
         This is the schedule for a GPU, where a step costs nearly the same for 1024 rays as for
-        8192 (27 ms per stage-1 step for 1024 rays from one frame, 32 for 4096 from four, 38 for
-        8192 from eight on an H200), and a step's frames are rendered in one call. There ``k = 4``
-        trained the real clip in 48 s (256 px) and 63 s (450 px) to the CPU's held-out PSNR. Measured on the shared real clip at 256 px (2-core CPU, the bench's 4345 + 3555
-        iterations, ``k = 4``; held-out frame / mouth crop / head PSNR): the default schedule
-        30.81 / 27.40 / 30.86 and 30.94 / 27.69 / 30.76 dB (seeds 0 and 1); ``k = 4`` 30.76 /
-        27.47 / 30.84 and 30.36 / 26.89 / 30.72 dB, with lower landmark distances (mouth LMD
-        1.73, 1.74 px against 1.77, 1.80). Each part was needed: the same rays from one frame a step lost 3.9 dB
-        (an H200), and from four frames at the unscaled learning rates 0.8 dB (the torso, taking
-        four times fewer Adam steps, lagged most). ``k = 8`` kept the head (30.48 dB on its
-        label) but lost 2.2 dB on the full frame: 444 torso steps were too few (that head with the
-        torso scaled by 4 scored 30.62 / 27.32 / 30.61 and 30.27 / 26.84 / 30.60 dB, seeds 0 and 1); ``k = 2`` is not
-        measured on the real clip. The defaults stay unscaled on every device (``adnerf train --scale K``).
+        8192 and a step's frames are rendered in one call; the defaults stay unscaled on every
+        device (``adnerf train --scale K``; ``docs/decisions.md``, *Larger steps on a GPU are opt-in*).
 
         Raises:
             ValueError: ``k`` is not a positive integer.
