@@ -13,7 +13,7 @@ import torch
 
 from adnerf.model import train as train_module
 from adnerf.model.data import DatasetError, load_dataset
-from adnerf.model.mouth_target import MouthProbe, mouth_targets
+from adnerf.model.mouth_target import MouthProbe, mouth_targets, opening_signal
 from adnerf.model.run_folder import RunError, stored_config
 from adnerf.model.train import TrainConfig, Trainer, train
 from adnerf.model.talking_head import model_config
@@ -88,7 +88,7 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_the_loss_reads_each_drawn_frames_own_code_and_target(scene: Path) -> None:
     ds = load_dataset(scene)
-    tcfg = TrainConfig(head_iters=4, torso_iters=0, lip_weight=0.5, lip_frames=16)
+    tcfg = TrainConfig(head_iters=4, torso_iters=0, lip_weight=0.5, lip_frames=16, lip_min_signal=-1.0)
     trainer = Trainer(Path("unused"), ds, model_config(ds.meta), tcfg, "cpu", False)
     targets, _ = mouth_targets(ds.landmarks, ds.meta.train)
     state = trainer.generator.get_state()
@@ -109,7 +109,7 @@ def test_the_loss_reads_each_drawn_frames_own_code_and_target(scene: Path) -> No
 
 def test_a_step_adds_the_weighted_mouth_loss_to_the_audio_encoders_gradient(scene: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     ds = load_dataset(scene)
-    trainer = Trainer(Path("unused"), ds, model_config(ds.meta), TrainConfig(lip_weight=0.25, lip_frames=8), "cpu", False)
+    trainer = Trainer(Path("unused"), ds, model_config(ds.meta), TrainConfig(lip_weight=0.25, lip_frames=8, lip_min_signal=-1.0), "cpu", False)
     audio = list(trainer.model.audio_net.parameters())
     frames = torch.tensor(ds.meta.train[:8])
     codes_of = lambda: trainer.model.frame_codes(trainer.windows, frames)  # noqa: E731
@@ -143,7 +143,7 @@ def test_a_step_adds_the_weighted_mouth_loss_to_the_audio_encoders_gradient(scen
 
 
 def test_training_fits_the_read_out_and_a_resume_restores_it(scene: Path, tmp_path: Path) -> None:
-    cfg = TrainConfig(head_iters=40, torso_iters=0, lip_weight=1.0, checkpoint_every=20, log_every=10)
+    cfg = TrainConfig(head_iters=40, torso_iters=0, lip_weight=1.0, lip_min_signal=-1.0, checkpoint_every=20, log_every=10)
     whole = train(scene, tmp_path / "whole", config=cfg, progress=False)
     split = tmp_path / "split"
     train(scene, split, config=cfg, progress=False, max_steps=20)
@@ -187,10 +187,41 @@ def test_landmarks_of_another_length_or_a_still_mouth_are_refused_with_the_way_o
     n = len(np.load(scene / "landmarks.npy"))
     np.save(bad / "landmarks.npy", face(np.full(n, 3.0), np.full(n, 24.0), np.full(n, 50.0), np.random.default_rng(0)))
     with pytest.raises(RunError, match=r"does not vary.*lip_weight"):
-        train(bad, tmp_path / "run", config=TrainConfig(head_iters=1, torso_iters=0), progress=False)
+        train(bad, tmp_path / "run", config=TrainConfig(head_iters=1, torso_iters=0, lip_min_signal=-1.0), progress=False)
     train(bad, tmp_path / "run", config=TrainConfig(head_iters=1, torso_iters=0, lip_weight=0.0), progress=False)
 
 
 def test_probe_maps_codes_to_the_two_targets() -> None:
     probe = MouthProbe(8)
     assert probe(torch.zeros(5, 8)).shape == (5, 2)
+
+
+def test_the_target_is_used_only_where_the_audio_predicts_the_opening(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A longer clip whose opening is the loudness of its feature windows' centre (a linear function
+    of what the audio encoder reads) is taught the target; the same clip with openings drawn at
+    random, which no audio predicts, is not, and run.json and the console say why."""
+    data = synthesize(tmp_path / "long", SynthConfig(seconds=8.0, size=32, seed=6, blinks=False))
+    windows = np.load(data / "features.npy")
+    n = len(windows)
+    rng = np.random.default_rng(3)
+    loud = windows[:, 8].mean(axis=1)
+    heard = face(2.0 + 6.0 * (loud - loud.min()) / np.ptp(loud), np.full(n, 24.0) + rng.normal(0, 0.5, n), np.full(n, 50.0), rng)
+    np.save(data / "landmarks.npy", heard)
+    cfg = TrainConfig(head_iters=1, torso_iters=0)
+    ds = load_dataset(data)
+    targets, valid = mouth_targets(ds.landmarks, ds.meta.train)
+    assert opening_signal(ds.features, targets, valid, ds.meta.train) > 0.9
+    run = train(data, tmp_path / "heard", config=cfg, progress=False)
+    doc = json.loads((run / "run.json").read_text())["mouth_target"]
+    assert doc["used"] and doc["signal"] > 0.9 and doc["min_signal"] == 0.2 and "mouth_probe" in torch.load(run / "checkpoint.pt", weights_only=False)
+    np.save(data / "landmarks.npy", face(rng.uniform(0, 8, n), np.full(n, 24.0) + rng.normal(0, 0.5, n), np.full(n, 50.0), rng))
+    ds = load_dataset(data)
+    targets, valid = mouth_targets(ds.landmarks, ds.meta.train)
+    assert abs(opening_signal(ds.features, targets, valid, ds.meta.train)) < 0.2
+    trainer = Trainer(tmp_path / "unheard", ds, model_config(ds.meta), cfg, "cpu", True)
+    assert trainer.mouth_probe is None and trainer.mouth_loss() is None
+    assert not trainer.mouth_doc["used"] and "under lip_min_signal 0.2" in trainer.mouth_doc["why"] and trainer.mouth_doc["why"] in capsys.readouterr().err
+    # -1 uses the target whatever the audio predicts.
+    assert Trainer(tmp_path / "forced", ds, model_config(ds.meta), TrainConfig(lip_min_signal=-1.0), "cpu", False).mouth_probe is not None
+    with pytest.raises(ValueError, match="lip_min_signal"):
+        TrainConfig(lip_min_signal=1.5).validate()

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..ridge import pearson  # re-exported: landmark metrics' correlations are Pearson's
+
 __all__ = ["LandmarkMetrics", "amplitude", "av_offset", "landmark_metrics", "lmd", "lmd_shape", "mouth_opening", "pearson", "still_lmd"]
 
 MOUTH = slice(48, 68)
@@ -62,14 +64,6 @@ def still_lmd(true: np.ndarray, points: slice = MOUTH) -> float:
     frames, against every frame (the best a still mouth could score on these frames)."""
     t = true[:, points] - true[:, points].mean(axis=1, keepdims=True)
     return float(np.linalg.norm(t - t.mean(axis=0), axis=-1).mean())
-
-
-def pearson(a: np.ndarray, b: np.ndarray) -> float:
-    """Pearson correlation of two series; NaN when either is constant."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    if a.std() == 0 or b.std() == 0:
-        return float("nan")
-    return float(np.corrcoef(a, b)[0, 1])
 
 
 def amplitude(rendered: np.ndarray, true: np.ndarray) -> tuple[float, float]:

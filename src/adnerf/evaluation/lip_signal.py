@@ -25,16 +25,16 @@ frames, positive when the mouth moves *after* the sound (as :func:`~adnerf.evalu
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .landmark_metrics import av_offset, mouth_opening, pearson
+from ..ridge import blocked_cv_corr, blocked_folds, pearson, ridge_fit_predict  # the last three re-exported
+from .landmark_metrics import av_offset, mouth_opening
 
-__all__ = ["LipSignal", "blocked_folds", "dataset_lip_signal", "lip_signal", "ridge_fit_predict"]
+__all__ = ["LipSignal", "blocked_folds", "dataset_lip_signal", "lip_signal", "pearson", "ridge_fit_predict"]
 
 
 @dataclass
@@ -66,67 +66,6 @@ class LipSignal:
     def to_dict(self) -> dict:
         """A JSON-serialisable dict (``nan`` as ``None``)."""
         return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in asdict(self).items()}
-
-
-def ridge_fit_predict(x_fit: np.ndarray, y_fit: np.ndarray, x_pred: np.ndarray, strength: float = 0.1) -> np.ndarray:
-    """Fit a ridge map ``x -> y`` and apply it.
-
-    The columns of ``x`` are standardised on the fitted rows (a constant column is centred and
-    left unscaled), ``y`` is centred, and the penalty is ``strength`` times the number of fitted
-    rows, so the same strength suits clips of any length. Solved in the primal (``D x D``) or the
-    dual (``n x n``) form, whichever is smaller; both give the same map.
-
-    Args:
-        x_fit: ``(n, D)`` inputs of the fitted rows.
-        y_fit: ``(n,)`` targets.
-        x_pred: ``(m, D)`` inputs to predict.
-        strength: Penalty per fitted row (> 0).
-
-    Returns:
-        ``(m,)`` predictions, float64.
-    """
-    x_fit, x_pred = np.asarray(x_fit, np.float64), np.asarray(x_pred, np.float64)
-    y_fit = np.asarray(y_fit, np.float64)
-    if x_fit.ndim != 2 or x_pred.ndim != 2 or x_fit.shape[1] != x_pred.shape[1] or y_fit.shape != (x_fit.shape[0],):
-        raise ValueError(f"ridge needs x_fit (n, D), y_fit (n,) and x_pred (m, D); got {x_fit.shape}, {y_fit.shape}, {x_pred.shape}")
-    if not strength > 0:
-        raise ValueError(f"the ridge strength must be positive; got {strength}")
-    n, d = x_fit.shape
-    mean, std = x_fit.mean(axis=0), x_fit.std(axis=0)
-    std = np.where(std > 0, std, 1.0)
-    a, b = (x_fit - mean) / std, (x_pred - mean) / std
-    y0 = y_fit.mean()
-    lam = strength * n
-    if d <= n:
-        w = np.linalg.solve(a.T @ a + lam * np.eye(d), a.T @ (y_fit - y0))
-    else:
-        w = a.T @ np.linalg.solve(a @ a.T + lam * np.eye(n), y_fit - y0)
-    return b @ w + y0
-
-
-def blocked_folds(n: int, blocks: int, guard: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Contiguous cross-validation folds over ``n`` frames in clip order.
-
-    Returns ``blocks`` pairs ``(fit, test)``: the test blocks tile ``0 .. n-1`` (sizes differing by
-    at most one), and each fit set is every frame more than ``guard`` frames away from its test
-    block.
-
-    Raises:
-        ValueError: Fewer than 2 blocks, a negative guard, or too few frames to leave at least 8
-            fitted frames and 4 tested frames per fold.
-    """
-    if blocks < 2 or guard < 0:
-        raise ValueError(f"cross-validation needs >= 2 blocks and a guard >= 0; got {blocks}, {guard}")
-    edges = np.linspace(0, n, blocks + 1).round().astype(int)
-    frames = np.arange(n)
-    folds = []
-    for lo, hi in itertools.pairwise(edges):
-        fit = frames[(frames < lo - guard) | (frames >= hi + guard)]
-        test = frames[lo:hi]
-        if len(test) < 4 or len(fit) < 8:
-            raise ValueError(f"{n} frames are too few for {blocks} blocks with a guard of {guard} frames")
-        folds.append((fit, test))
-    return folds
 
 
 def lip_signal(
@@ -168,8 +107,7 @@ def lip_signal(
         raise ValueError("feature windows and openings must be finite (frames without a face have no opening)")
     if (train is None) != (test is None):
         raise ValueError("give both the training and the held-out frames, or neither")
-    folds = blocked_folds(n, blocks, guard)
-    per_block = [pearson(ridge_fit_predict(x[fit], y[fit], x[te], strength), y[te]) for fit, te in folds]
+    per_block = blocked_cv_corr(x, y, blocks, guard, strength)
     tail = float("nan")
     if train is not None and test is not None:
         tr, te = np.asarray(train, int), np.asarray(test, int)

@@ -14,6 +14,12 @@ opening (the mean distance of the pairs 61-67, 62-66, 63-65 of the iBUG 68-point
 mouth width (corners 48-54), each over the distance of the outer eye corners (36-45), so that a
 head nearer the camera does not look more open; then each minus its training mean, over its
 training standard deviation.
+
+The target is used only where the clip's audio predicts the opening on training frames it was
+not fitted on (:func:`opening_signal`, at least
+:attr:`~adnerf.model.train_config.TrainConfig.lip_min_signal`): from a short clip, whose audio
+tells little about its mouth, the read-out would teach the code to name each training frame's
+opening, and held-out speech would then call up openings at random.
 """
 
 from __future__ import annotations
@@ -24,7 +30,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-__all__ = ["MOUTH_TARGETS", "MouthProbe", "mouth_targets"]
+from ..ridge import blocked_cv_corr
+
+__all__ = ["MOUTH_TARGETS", "MouthProbe", "mouth_targets", "opening_signal"]
 
 MOUTH_TARGETS = ("opening", "width")
 """The columns of :func:`mouth_targets`."""
@@ -70,6 +78,29 @@ def mouth_targets(landmarks: np.ndarray, train: Sequence[int]) -> tuple[np.ndarr
         raise ValueError(f"the mouth {' and '.join(flat)} does not vary over the training frames: nothing for the audio code to predict")
     targets = np.where(valid[:, None], (raw - mean) / std, 0.0)
     return targets.astype(np.float32), valid
+
+
+def opening_signal(windows: np.ndarray, targets: np.ndarray, valid: np.ndarray, train: Sequence[int]) -> float:
+    """How well the audio predicts the mouth opening on the training frames: the mean over six
+    contiguous blocks of the training frames (in clip order, 8 frames left out on either side) of
+    the correlation of the standardised opening with a ridge map from the feature windows fitted
+    on the frames outside the block (:func:`adnerf.ridge.blocked_cv_corr`; ``adnerf lip-signal``
+    measures the same on the whole clip). ``nan`` when the frames are too few for the blocks.
+
+    Args:
+        windows: ``(N, 16, D)`` feature windows.
+        targets: ``(N, 2)`` :func:`mouth_targets`.
+        valid: ``(N,)`` bool, the frames with a target.
+        train: The training frames.
+    """
+    frames = np.asarray(train, dtype=np.int64)
+    frames = frames[valid[frames]]
+    try:
+        blocks = blocked_cv_corr(np.asarray(windows)[frames], targets[frames, 0])
+    except ValueError:  # too few frames for the folds
+        return float("nan")
+    scored = [b for b in blocks if np.isfinite(b)]
+    return float(np.mean(scored)) if scored else float("nan")
 
 
 class MouthProbe(nn.Module):

@@ -196,8 +196,9 @@ def load_model_state(model: TalkingHead, state: dict, path: Path, smoothing: boo
         raise RunError(f"{path}: weights do not match the run's model (missing {missing[:3]}, unexpected {unexpected[:3]})")
 
 
-def write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, distributed: dict) -> None:
-    """``run.json`` (with how the run is trained: processes, backend, devices) and the plate."""
+def write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, distributed: dict, extra: dict | None = None) -> None:
+    """``run.json`` (with how the run is trained: processes, backend, devices; and ``extra``'s
+    entries, e.g. whether the mouth target is used) and the plate."""
     root.mkdir(parents=True, exist_ok=True)
     meta = {k: v for k, v in ds.meta.to_dict().items() if k not in ("train", "test")}
     doc = {
@@ -209,6 +210,7 @@ def write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: Mod
         "train": asdict(tcfg),
         "meta": meta,
         "distributed": distributed,
+        **(extra or {}),
     }
     write_json_atomic(root / "run.json", doc)
     shutil.copyfile(Path(dataset) / "background.png", root / "background.png")

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import signal
+import sys
 import threading
 import time
 from contextlib import contextmanager, nullcontext
@@ -63,7 +64,7 @@ from .data import (
 )
 from .distributed import Ranks, init_ranks
 from .masks import BitRows
-from .mouth_target import MouthProbe, mouth_targets
+from .mouth_target import MouthProbe, mouth_targets, opening_signal
 from .run_folder import (
     RESUMABLE,
     Run,
@@ -327,18 +328,29 @@ class Trainer:
             **fused,
         )
         self.opt_torso = torch.optim.Adam(list(m.layers["torso"].parameters()), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
-        # The mouth targets the audio code is asked to predict (stage 1), from the landmarks.
+        # The mouth targets the audio code is asked to predict (stage 1), from the landmarks, where
+        # the clip's audio predicts them (mouth_doc says whether and why, for run.json).
         self.mouth_probe: MouthProbe | None = None
         self.lip_window: list[torch.Tensor] = []
+        self.mouth_doc: dict = {"used": False, "why": "lip_weight is 0" if tcfg.lip_weight <= 0 else "the dataset has no landmarks.npy"}
         if tcfg.lip_weight > 0 and ds.landmarks is not None:
             try:
                 targets, valid = mouth_targets(ds.landmarks, ds.meta.train)
             except ValueError as exc:
                 raise RunError(f"{ds.root}/landmarks.npy: {exc}; train with {{\"lip_weight\": 0}} (--config) to go on without the mouth target") from exc
-            self.mouth = torch.as_tensor(targets, device=device)
-            self.lip_pool = self.train_frames[torch.as_tensor(valid)[self.train_frames]]
-            self.mouth_probe = MouthProbe(mcfg.audio_dim).to(device)
-            self.opt_probe = torch.optim.Adam(self.mouth_probe.parameters(), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
+            signal = opening_signal(ds.features, targets, valid, ds.meta.train)
+            used = bool(signal >= tcfg.lip_min_signal) or tcfg.lip_min_signal <= -1
+            self.mouth_doc = {"used": used, "signal": None if signal != signal else round(signal, 4), "min_signal": tcfg.lip_min_signal}
+            if used:
+                self.mouth = torch.as_tensor(targets, device=device)
+                self.lip_pool = self.train_frames[torch.as_tensor(valid)[self.train_frames]]
+                self.mouth_probe = MouthProbe(mcfg.audio_dim).to(device)
+                self.opt_probe = torch.optim.Adam(self.mouth_probe.parameters(), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
+            else:
+                said = "too few training frames to tell" if signal != signal else f"{signal:.2f} (cross-validated correlation)"
+                self.mouth_doc["why"] = f"the audio predicts the training frames' mouth opening at {said}, under lip_min_signal {tcfg.lip_min_signal:g}: the audio code learns from the photometric loss alone"
+                if self.progress:
+                    print(f"adnerf: {self.mouth_doc['why']}", file=sys.stderr)
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.head_step = self.torso_step = 0
         self.elapsed = {"head": 0.0, "torso": 0.0}
@@ -788,7 +800,7 @@ def train(
         if ckpt is not None:
             trainer.load(ckpt)
         if ranks.main:
-            write_run(root, dataset, ds, mcfg, tcfg, {"world_size": ranks.world, "backend": ranks.backend, "devices": devices})
+            write_run(root, dataset, ds, mcfg, tcfg, {"world_size": ranks.world, "backend": ranks.backend, "devices": devices}, {"mouth_target": trainer.mouth_doc})
         ranks.barrier()
         budget = max_steps
         with stop_on_signals(trainer):

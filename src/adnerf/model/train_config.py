@@ -47,6 +47,9 @@ class TrainConfig:
             and width, on ``lip_frames`` training frames a step. 0, or a dataset without
             ``landmarks.npy``, trains the audio code from the photometric loss alone (AD-NeRF's).
         lip_frames: Training frames whose audio codes the mouth-target loss reads each step.
+        lip_min_signal: The mouth target is used only when the clip's audio predicts the opening
+            of its training frames at least this well (cross-validated correlation,
+            :func:`~adnerf.model.mouth_target.opening_signal`); -1 uses it always.
         torso_person_rays: Fraction of each stage-2 batch drawn among the frame's torso pixels
             (the rest uniformly in the torso box, which is mostly background).
         mask_weight: Weight of the opacity loss against the parsing (stage 1: head pixels opaque,
@@ -77,6 +80,7 @@ class TrainConfig:
     blink_frames: float = 0.5
     lip_weight: float = 0.01
     lip_frames: int = 64
+    lip_min_signal: float = 0.2
     torso_person_rays: float = 0.5
     mask_weight: float = 0.1
     occupancy_start: float = 0.1
@@ -145,6 +149,8 @@ class TrainConfig:
             raise ValueError("mask_weight and lip_weight must be >= 0")
         if self.lip_frames < 1:
             raise ValueError(f"lip_frames must be >= 1; got {self.lip_frames}")
+        if not -1 <= self.lip_min_signal <= 1:
+            raise ValueError(f"lip_min_signal is a correlation, in [-1, 1]; got {self.lip_min_signal}")
         if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1 and 0 <= self.eye_rays <= 1 and 0 <= self.blink_frames <= 1):
             raise ValueError("mouth_rays, eye_rays, blink_frames and torso_person_rays must lie in [0, 1]")
         if self.preset not in PRESETS:
