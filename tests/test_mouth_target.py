@@ -221,6 +221,10 @@ def test_the_target_is_used_only_where_the_audio_predicts_the_opening(scene: Pat
     trainer = Trainer(tmp_path / "unheard", ds, model_config(ds.meta), cfg, "cpu", True)
     assert trainer.mouth_probe is None and trainer.mouth_loss() is None
     assert not trainer.mouth_doc["used"] and "under lip_min_signal 0.2" in trainer.mouth_doc["why"] and trainer.mouth_doc["why"] in capsys.readouterr().err
+    # Too few training frames to cross-validate: no target, and the reason given.
+    ds.meta.train = ds.meta.train[:20]
+    short = Trainer(tmp_path / "short", ds, model_config(ds.meta), cfg, "cpu", False)
+    assert short.mouth_probe is None and short.mouth_doc["signal"] is None and "cannot be cross-validated" in short.mouth_doc["why"]
     # -1 uses the target whatever the audio predicts.
     assert Trainer(tmp_path / "forced", ds, model_config(ds.meta), TrainConfig(lip_min_signal=-1.0), "cpu", False).mouth_probe is not None
     with pytest.raises(ValueError, match="lip_min_signal"):

@@ -28,6 +28,7 @@ checkpoint every ``checkpoint_every`` iterations and at the end of each stage. T
 from __future__ import annotations
 
 import json
+import math
 import signal
 import sys
 import threading
@@ -339,16 +340,17 @@ class Trainer:
             except ValueError as exc:
                 raise RunError(f"{ds.root}/landmarks.npy: {exc}; train with {{\"lip_weight\": 0}} (--config) to go on without the mouth target") from exc
             signal = opening_signal(ds.features, targets, valid, ds.meta.train)
-            used = bool(signal >= tcfg.lip_min_signal) or tcfg.lip_min_signal <= -1
-            self.mouth_doc = {"used": used, "signal": None if signal != signal else round(signal, 4), "min_signal": tcfg.lip_min_signal}
+            known = not math.isnan(signal)
+            used = (known and signal >= tcfg.lip_min_signal) or tcfg.lip_min_signal <= -1
+            self.mouth_doc = {"used": used, "signal": round(signal, 4) if known else None, "min_signal": tcfg.lip_min_signal}
             if used:
                 self.mouth = torch.as_tensor(targets, device=device)
                 self.lip_pool = self.train_frames[torch.as_tensor(valid)[self.train_frames]]
                 self.mouth_probe = MouthProbe(mcfg.audio_dim).to(device)
                 self.opt_probe = torch.optim.Adam(self.mouth_probe.parameters(), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
             else:
-                said = "too few training frames to tell" if signal != signal else f"{signal:.2f} (cross-validated correlation)"
-                self.mouth_doc["why"] = f"the audio predicts the training frames' mouth opening at {said}, under lip_min_signal {tcfg.lip_min_signal:g}: the audio code learns from the photometric loss alone"
+                said = f"predicts the training frames' mouth opening at {signal:.2f} (cross-validated correlation)" if known else "cannot be cross-validated on so few training frames"
+                self.mouth_doc["why"] = f"the audio {said}, under lip_min_signal {tcfg.lip_min_signal:g}: the audio code learns from the photometric loss alone"
                 if self.progress:
                     print(f"adnerf: {self.mouth_doc['why']}", file=sys.stderr)
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
