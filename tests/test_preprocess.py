@@ -100,13 +100,22 @@ def test_sigterm_during_preprocessing_keeps_the_finished_steps_and_says_which_wa
 
     out = tmp_path / "data"
     argv = ["preprocess", str(scene / "video.mp4"), "-o", str(out), "--focal", str(1.33 * 96)]
-    child = subprocess.Popen([sys.executable, "-c", "import sys; from adnerf.cli import main; sys.exit(main(sys.argv[1:]))", *argv], stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    # The child's pose step says when it has begun and then waits, so that the signal lands in it
+    # however busy the machine is (a 3 s scene's pose step can end before a busy parent polls).
+    begun = tmp_path / "pose_begun"
+    child_code = (
+        "import sys, time; from pathlib import Path; from adnerf.preprocess import pipeline; real = pipeline._step_pose\n"
+        "def pose(*a, **k):\n    Path(sys.argv[1]).touch(); time.sleep(120); return real(*a, **k)\n"
+        "pipeline._step_pose = pose\nfrom adnerf.cli import main; sys.exit(main(sys.argv[2:]))"
+    )
+    child = subprocess.Popen([sys.executable, "-c", child_code, str(begun), *argv], stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
     steps = tmp_path / ".data.preprocess" / "steps.json"
     deadline = time.time() + 300
-    while not (steps.exists() and "face" in json.loads(steps.read_text() or "{}")):
-        assert child.poll() is None and time.time() < deadline, child.stderr.read() if child.poll() is not None else "no face step"
+    while not begun.exists():
+        assert child.poll() is None and time.time() < deadline, child.stderr.read() if child.poll() is not None else "no pose step"
         time.sleep(0.05)
-    child.send_signal(signal.SIGTERM)  # in the pose step, the longest
+    assert "face" in json.loads(steps.read_text())
+    child.send_signal(signal.SIGTERM)  # in the pose step
     _, err = child.communicate(timeout=120)
     lines = [line for line in err.splitlines() if line.startswith("adnerf:")]
     assert child.returncode == 143 and len(lines) == 1 and "Traceback" not in err, err
