@@ -11,6 +11,7 @@ from kornia.geometry.liegroup import Se3, So3
 from adnerf.pose import (
     HeadPose,
     directions_to_canonical,
+    euler_angles,
     euler_rotation,
     from_canonical,
     perturb_pose,
@@ -124,3 +125,29 @@ def test_headpose_algebra() -> None:
     assert pose.code().shape == (9,)
     with pytest.raises(ValueError):
         HeadPose(R, t[:2])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_euler_angles_invert_euler_rotation(dtype: torch.dtype) -> None:
+    """Angles drawn over the whole domain (pitch within +-pi/2) come back from their rotation: a
+    swapped axis order or a sign error in any of the three would fail."""
+    g = torch.Generator().manual_seed(3)
+    a = (torch.rand(2000, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([2 * math.pi, math.pi, 2 * math.pi], dtype=torch.float64)
+    a = a.to(dtype)
+    R = euler_rotation(a[:, 0], a[:, 1], a[:, 2], like=a)
+    back = euler_angles(R)
+    assert back.dtype == dtype
+    tol = 1e-12 if dtype == torch.float64 else 5e-4  # yaw and roll lose digits as the pitch nears +-pi/2
+    wrapped = torch.remainder(back - a + math.pi, 2 * math.pi) - math.pi  # yaw and roll are defined modulo 2 pi
+    assert wrapped.abs().max() < tol
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_euler_angles_at_gimbal_lock_rebuild_the_rotation(sign: float) -> None:
+    """At pitch +-90 degrees only yaw -+ roll is defined: the angles reported (roll 0) rebuild the
+    same rotation, with no NaN."""
+    like = torch.zeros((), dtype=torch.float64)
+    R = euler_rotation(0.3, sign * math.pi / 2, 0.2, like=like)
+    back = euler_angles(R)
+    assert torch.isfinite(back).all() and back[2] == 0.0
+    torch.testing.assert_close(euler_rotation(*back, like=like), R, atol=1e-12, rtol=0)

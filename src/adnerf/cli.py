@@ -74,6 +74,16 @@ def _number(cast: type, lo: float | None = None, hi: float | None = None, *, ope
     return parse
 
 
+def _angle(text: str):
+    """An argparse type: degrees, a ``.npy`` of per-frame angles or ``sway:A,P`` (:func:`adnerf.commands.pose_edits.parse_angle`)."""
+    from .commands.pose_edits import parse_angle
+
+    try:
+        return parse_angle(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
 _positive = _number(float, 0.0, open_lo=True)
 _count = _number(int, 0)
 
@@ -471,7 +481,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     if not args.output.endswith(".mp4"):
         raise CliError(f"{args.output}: the output must be an .mp4 file")
-    inputs = [args.audio, args.poses, args.features, args.background, None if args.blink in ("auto", "none") else args.blink]
+    inputs = [args.audio, args.poses, args.features, args.background, None if args.blink in ("auto", "none") else args.blink, *(a.file for a in (args.yaw, args.pitch, args.roll) if a.file is not None)]
     check_render_outputs(args.output, args.frames, inputs=inputs, overwrite=args.overwrite)  # before loading and rendering
     run = load_run(args.run, _device(args.device))
     bars: list[tqdm] = []  # opened at the first frame, so a refused input prints no bar
@@ -491,6 +501,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
             yaw=args.yaw,
             pitch=args.pitch,
             roll=args.roll,
+            strict_pose=args.strict_pose,
             background=args.background,
             features=args.features,
             frames_dir=args.frames,
@@ -709,9 +720,11 @@ def build_parser() -> argparse.ArgumentParser:
     poses = rn.add_mutually_exclusive_group()
     poses.add_argument("--poses", default=None, help=".npy of (N, 4, 4) head poses, one per output frame")
     poses.add_argument("--from", dest="from_dataset", default=None, help="take the pose track of this dataset (played back and forth)")
-    rn.add_argument("--yaw", type=_number(float, -180.0, 180.0), default=0.0, help="degrees added about the head's vertical axis, -180 to 180; positive turns the face towards the image's left (the person's right)")
-    rn.add_argument("--pitch", type=_number(float, -180.0, 180.0), default=0.0, help="degrees added about the horizontal axis, -180 to 180; positive nods the face down")
-    rn.add_argument("--roll", type=_number(float, -180.0, 180.0), default=0.0, help="degrees added about the viewing axis, -180 to 180; positive turns the head clockwise in the image")
+    edit = "; or a .npy of one angle per frame, or sway:AMPLITUDE,PERIOD (degrees, seconds: an idle motion kept inside the poses the run was taught)"
+    rn.add_argument("--yaw", type=_angle, default="0", metavar="DEG|FILE.npy|sway:A,P", help="degrees added about the head's vertical axis, -180 to 180; positive turns the face towards the image's left (the person's right)" + edit)
+    rn.add_argument("--pitch", type=_angle, default="0", metavar="DEG|FILE.npy|sway:A,P", help="degrees added about the horizontal axis; positive nods the face down" + edit)
+    rn.add_argument("--roll", type=_angle, default="0", metavar="DEG|FILE.npy|sway:A,P", help="degrees added about the viewing axis; positive turns the head clockwise in the image" + edit)
+    rn.add_argument("--strict-pose", action="store_true", help="refuse poses farther outside the range the training frames showed than the margin (5 degrees, 0.1 head widths), instead of warning")
     rn.add_argument("--features", default=None, help=".npy of precomputed feature windows (M, 16, D) for the audio, one per frame (e.g. AD-NeRF's DeepSpeech aud.npy); required for runs trained on imported DeepSpeech features")
     rn.add_argument("--background", default=None, help="replacement background image")
     rn.add_argument("--blink", default="auto", metavar="auto|none|FILE.npy", help="eye openness for runs trained with eyes (datasets with eye.npy): auto plays natural blinks (one every 2-6 s, 0.2 s long), none keeps the eyes open, a .npy gives one value per frame (1 open, 0 closed)")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from kornia.geometry.liegroup import Se3, So3
 from torch import Tensor
@@ -22,8 +23,10 @@ __all__ = [
     "HeadPose",
     "directions_from_canonical",
     "directions_to_canonical",
+    "euler_angles",
     "euler_rotation",
     "from_canonical",
+    "mean_rotation",
     "perturb_pose",
     "rotation_angle",
     "to_canonical",
@@ -108,6 +111,39 @@ def euler_rotation(yaw: Tensor | float, pitch: Tensor | float, roll: Tensor | fl
     flat = [a.reshape(-1) for a in (yaw_t, pitch_t, roll_t)]
     R = (So3.rot_y(flat[0]) * So3.rot_x(flat[1]) * So3.rot_z(flat[2])).matrix()
     return R.reshape(*shape, 3, 3)
+
+
+def euler_angles(R: Tensor) -> Tensor:
+    """The inverse of :func:`euler_rotation`: ``(yaw, pitch, roll)`` in radians, shape ``(..., 3)``,
+    of rotations ``R (..., 3, 3) = R_y(yaw) @ R_x(pitch) @ R_z(roll)`` (camera axes).
+
+    Pitch lies in ``[-pi/2, pi/2]``, yaw and roll in ``(-pi, pi]``. At gimbal lock (pitch
+    ``+-pi/2``, where only ``yaw -+ roll`` is defined) the roll is reported as 0 and the yaw carries
+    the rotation. dtype and device follow ``R``.
+
+    Example:
+        >>> import torch
+        >>> R = euler_rotation(0.3, -0.2, 0.1, like=torch.zeros((), dtype=torch.float64))
+        >>> [round(float(a), 6) for a in euler_angles(R)]
+        [0.3, -0.2, 0.1]
+    """
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3); got {tuple(R.shape)}")
+    # R = [[., ., sy cp], [cp sr, cp cr, -sp], [., ., cy cp]] for R_y(y) R_x(p) R_z(r).
+    cos_pitch = torch.hypot(R[..., 1, 0], R[..., 1, 1])
+    pitch = torch.atan2(-R[..., 1, 2], cos_pitch)
+    locked = cos_pitch <= 1e-12 * torch.ones_like(cos_pitch)
+    yaw = torch.where(locked, torch.atan2(-R[..., 2, 0], R[..., 0, 0]), torch.atan2(R[..., 0, 2], R[..., 2, 2]))
+    roll = torch.where(locked, torch.zeros_like(pitch), torch.atan2(R[..., 1, 0], R[..., 1, 1]))
+    return torch.stack([yaw, pitch, roll], dim=-1)
+
+
+def mean_rotation(R: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations ``(N, 3, 3)`` (numpy, float64): the rotation nearest to their
+    arithmetic mean."""
+    u, _, vt = np.linalg.svd(np.asarray(R, dtype=np.float64).mean(0))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 def perturb_pose(

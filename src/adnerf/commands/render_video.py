@@ -35,6 +35,7 @@ from ..model.talking_head import FrameRender, render_frame
 from ..lock import writes_folder
 from ..outputs import check_file_output, check_frames_folder
 from ..pose import HeadPose
+from .pose_edits import AngleTrack, angle_tracks, check_pose_range, edit_poses, parse_angle
 
 __all__ = ["RenderError", "check_render_outputs", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
 
@@ -148,9 +149,9 @@ def render_frames(
     poses: np.ndarray,
     plate: np.ndarray,
     *,
-    yaw: float = 0.0,
-    pitch: float = 0.0,
-    roll: float = 0.0,
+    yaw: float | np.ndarray = 0.0,
+    pitch: float | np.ndarray = 0.0,
+    roll: float | np.ndarray = 0.0,
     eye: np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> RenderedClip:
@@ -161,10 +162,12 @@ def render_frames(
         windows: Audio feature windows ``(N, 16, D)``.
         poses: Head poses ``(N, 4, 4)``.
         plate: Background ``(H, W, 3)`` float in [0, 1].
-        yaw: Added rotation about the head's vertical axis through its centre, degrees;
-            positive turns the face towards the image's left (the person's right).
-        pitch: About the horizontal axis, degrees; positive nods the face down.
-        roll: About the viewing axis, degrees; positive turns the head clockwise in the image.
+        yaw: Added rotation about the head's vertical axis through its centre, degrees (one
+            number, or ``(N,)`` per frame); positive turns the face towards the image's left (the
+            person's right).
+        pitch: About the horizontal axis, degrees (a number or ``(N,)``); positive nods the face down.
+        roll: About the viewing axis, degrees (a number or ``(N,)``); positive turns the head
+            clockwise in the image.
         eye: Eye openness per frame ``(N,)`` (1 open, 0 closed) for runs whose head reads it;
             ``None``: open.
         progress: Called as ``progress(done, total)``.
@@ -176,9 +179,13 @@ def render_frames(
         raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
     if eye is not None and (np.shape(eye) != (len(windows),) or not np.isfinite(eye).all()):
         raise RenderError(f"eye openness must be {len(windows)} finite values, one per frame; got shape {np.shape(eye)}")
-    if not all(math.isfinite(a) for a in (yaw, pitch, roll)):
-        raise RenderError(f"yaw, pitch and roll must be finite degrees; got {yaw}, {pitch}, {roll}")
-    _checked_poses(np.asarray(poses, dtype=np.float64), "poses")
+    try:
+        angles = np.stack([np.broadcast_to(np.asarray(a, dtype=np.float64), (len(windows),)) for a in (yaw, pitch, roll)], axis=1)
+    except ValueError:
+        raise RenderError(f"yaw, pitch and roll must be numbers or one angle per frame ({len(windows)}); got shapes {[np.shape(a) for a in (yaw, pitch, roll)]}") from None
+    if not np.isfinite(angles).all():
+        raise RenderError("yaw, pitch and roll must be finite degrees")
+    poses = edit_poses(_checked_poses(np.asarray(poses, dtype=np.float64), "poses"), angles)
     if plate.shape != (meta["height"], meta["width"], 3):
         raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
     camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
@@ -191,9 +198,8 @@ def render_frames(
     frames = np.empty((n, H, W, 3), dtype=np.uint8)
     head_op = np.empty((n, H, W), dtype=np.float32)
     torso_op = np.empty((n, H, W), dtype=np.float32)
-    angles = [math.radians(a) for a in (yaw, pitch, roll)]
     for i in range(n):
-        pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev)).perturbed(*angles)
+        pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev))
         out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, eye=None if eye is None else float(eye[i]), layers=run.trained_layers, amp=run.train_config.amp)
         frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
         head_op[i] = out.head_opacity.cpu().numpy()
@@ -221,9 +227,10 @@ def render_audio_video(
     *,
     poses_file: str | Path | None = None,
     from_dataset: str | Path | None = None,
-    yaw: float = 0.0,
-    pitch: float = 0.0,
-    roll: float = 0.0,
+    yaw: float | str | AngleTrack = 0.0,
+    pitch: float | str | AngleTrack = 0.0,
+    roll: float | str | AngleTrack = 0.0,
+    strict_pose: bool = False,
     background: str | Path | None = None,
     features: str | Path | None = None,
     frames_dir: str | Path | None = None,
@@ -232,6 +239,12 @@ def render_audio_video(
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Render the run saying the audio of ``audio_path`` and write an mp4 with that audio.
+
+    ``yaw``, ``pitch`` and ``roll`` are each degrees, a ``.npy`` of one angle per frame or
+    ``sway:AMPLITUDE,PERIOD`` (:func:`~adnerf.commands.pose_edits.parse_angle`). The poses to render
+    are compared with the range the run was taught (:attr:`Run.pose_range
+    <adnerf.model.run_folder.Run.pose_range>`): beyond it by more than the margins a warning says
+    how far, and ``strict_pose`` refuses before rendering (:class:`RenderError`).
 
     A run whose head reads the eye openness blinks as ``blink`` says
     (:func:`adnerf.model.blinks.eye_track`: ``"auto"`` natural blinks, ``"none"`` eyes open, or an
@@ -252,8 +265,13 @@ def render_audio_video(
 
     if poses_file is not None and from_dataset is not None:
         raise RenderError("give either a pose file or a dataset to take poses from, not both")
+    try:
+        tracks = {name: v if isinstance(v, AngleTrack) else parse_angle(v) for name, v in (("yaw", yaw), ("pitch", pitch), ("roll", roll))}
+    except ValueError as exc:
+        raise RenderError(str(exc)) from exc
     blink_file = None if str(blink) in ("auto", "none") else blink
-    check_render_outputs(out, frames_dir, inputs=[audio_path, poses_file, features, background, blink_file], overwrite=overwrite)
+    track_files = [t.file for t in tracks.values() if t.file is not None]
+    check_render_outputs(out, frames_dir, inputs=[audio_path, poses_file, features, background, blink_file, *track_files], overwrite=overwrite)
     if blink_file is not None and not run.model.reads_eye:
         raise RenderError(f"--blink {blink}: this run's head has no eye condition (it was trained on a dataset without eye.npy), so it cannot blink on command")
     try:
@@ -302,7 +320,12 @@ def render_audio_video(
         eye = eye_track(blink, n, meta["fps"]) if run.model.reads_eye else None
     except ValueError as exc:
         raise RenderError(str(exc)) from exc
-    clip = render_frames(run, windows, poses, plate, yaw=yaw, pitch=pitch, roll=roll, eye=eye, progress=progress)
+    try:
+        angles = angle_tracks(tracks, poses, meta["fps"], run.pose_range)
+        pose_warning = check_pose_range(run.pose_range, edit_poses(poses, angles), strict=strict_pose)
+    except ValueError as exc:  # a bad track file, a sway without a range, PoseRangeError
+        raise RenderError(str(exc)) from exc
+    clip = render_frames(run, windows, poses, plate, yaw=angles[:, 0], pitch=angles[:, 1], roll=angles[:, 2], eye=eye, progress=progress)
     write_video(out, clip.frames, meta["fps"], AudioTrack(audio.samples, audio.sample_rate, 0.0))
     if frames_dir is not None:
         d = Path(frames_dir)
@@ -310,4 +333,4 @@ def render_audio_video(
         for name, f in zip(frame_names(n), clip.frames):
             if not cv2.imwrite(str(d / name), cv2.cvtColor(f, cv2.COLOR_RGB2BGR)):
                 raise RenderError(f"{d / name}: could not write the frame")
-    return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9), "blinks": None if eye is None else count_blinks(eye)}
+    return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9), "blinks": None if eye is None else count_blinks(eye), "pose_warning": pose_warning}

@@ -2,7 +2,8 @@
 
 A run folder holds ``run.json`` (format and version, the dataset's path and fingerprint, the model
 and training configuration, the dataset's camera and audio metadata, how it was trained:
-processes, backend, devices), ``background.png`` (the dataset's plate), ``checkpoint.pt`` (model,
+processes, backend, devices; the head poses the training frames covered, ``pose_range``),
+``background.png`` (the dataset's plate), ``checkpoint.pt`` (model,
 optimisers, random generator, finished steps and training seconds; written atomically),
 and ``log.jsonl`` (one JSON object per logged iteration); a ``head_renders.pt`` of earlier
 versions (a cache of stage-1 renders) is no longer read. :func:`load_run` gives a :class:`Run`; training
@@ -17,15 +18,17 @@ import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..atomic import atomic_path
 from ..lock import lock_owner
-from .data import TalkingHeadDataset
+from .data import DatasetError, SceneMeta, TalkingHeadDataset, read_meta
+from .pose_range import PoseRange
 from .talking_head import ModelConfig, TalkingHead, migrate_state_dict
 from .train_config import TrainConfig
 
-__all__ = ["RESUMABLE", "RUN_FORMAT", "RUN_VERSION", "Run", "RunError", "load_run", "resumed_config", "stored_config", "write_run"]
+__all__ = ["RESUMABLE", "RUN_FORMAT", "RUN_VERSION", "Run", "RunError", "load_run", "resumed_config", "stored_config", "stored_pose_range", "taught_pose_range", "write_run"]
 
 RUN_FORMAT = "adnerf-run"
 RUN_VERSION = 1
@@ -81,6 +84,8 @@ class Run:
         torso_step: Finished stage-2 iterations.
         meta: The dataset's ``meta.json`` content (camera, fps, boxes, feature kind).
         elapsed: Training seconds per stage (``{"head": s, "torso": s}``), from the checkpoint.
+        pose_range: The head poses the training frames covered (:mod:`adnerf.model.pose_range`);
+            ``None`` for a run written before the range was stored whose dataset is gone.
     """
 
     root: Path
@@ -91,6 +96,7 @@ class Run:
     torso_step: int
     meta: dict
     elapsed: dict = field(default_factory=dict)
+    pose_range: PoseRange | None = None
 
     @property
     def has_torso(self) -> bool:
@@ -160,7 +166,28 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     owner = lock_owner(root)
     if owner is not None:  # read beside a training: its last complete checkpoint (written atomically)
         warnings.warn(f"{root} is being trained (process {owner.get('pid')} on {owner.get('host')}); using its last checkpoint, head step {ckpt['head_step']}/{tcfg.head_iters}, torso step {ckpt['torso_step']}/{tcfg.torso_iters}", stacklevel=2)
-    return Run(root, Path(doc["dataset"]), model, tcfg, ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"])
+    return Run(root, Path(doc["dataset"]), model, tcfg, ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"], stored_pose_range(doc))
+
+
+def taught_pose_range(poses: np.ndarray, meta: SceneMeta) -> PoseRange:
+    """The pose range of a dataset's training frames: poses ``(N, 4, 4)`` and its :class:`SceneMeta`
+    (the head box's width is the unit of the translation margin)."""
+    return PoseRange.from_poses(poses[meta.train], meta.head_aabb[1][0] - meta.head_aabb[0][0])
+
+
+def stored_pose_range(doc: dict) -> PoseRange | None:
+    """A run's pose range: ``run.json``'s, or for a run written before it was stored, its dataset's
+    (poses and training split), or ``None`` when that is gone or unreadable."""
+    if "pose_range" in doc:
+        try:
+            return PoseRange.from_dict(doc["pose_range"])
+        except ValueError as exc:
+            raise RunError(f"run.json's pose_range is damaged ({exc}); train a new run into another folder") from exc
+    dataset = Path(doc.get("dataset", ""))
+    try:
+        return taught_pose_range(np.load(dataset / "poses.npy"), read_meta(dataset))
+    except (OSError, ValueError, DatasetError, IndexError):
+        return None
 
 
 def check_same_dataset(doc: dict, ds: TalkingHeadDataset, dataset: str | Path, root: Path) -> None:
@@ -197,8 +224,8 @@ def load_model_state(model: TalkingHead, state: dict, path: Path, smoothing: boo
 
 
 def write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, distributed: dict, extra: dict | None = None) -> None:
-    """``run.json`` (with how the run is trained: processes, backend, devices; and ``extra``'s
-    entries, e.g. whether the mouth target is used) and the plate."""
+    """``run.json`` (with how the run is trained: processes, backend, devices; the pose range of
+    the training frames; and ``extra``'s entries, e.g. whether the mouth target is used) and the plate."""
     root.mkdir(parents=True, exist_ok=True)
     meta = {k: v for k, v in ds.meta.to_dict().items() if k not in ("train", "test")}
     doc = {
@@ -210,6 +237,7 @@ def write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: Mod
         "train": asdict(tcfg),
         "meta": meta,
         "distributed": distributed,
+        "pose_range": taught_pose_range(ds.poses, ds.meta).to_dict(),
         **(extra or {}),
     }
     write_json_atomic(root / "run.json", doc)

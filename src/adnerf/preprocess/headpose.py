@@ -18,7 +18,7 @@ from kornia.geometry.camera import project_points as kornia_project
 
 from ..cameras import intrinsics_matrix
 from ..model.data import LABEL_HEAD
-from ..pose import rotation_angle
+from ..pose import mean_rotation, rotation_angle
 from .bundle import bundle_adjust, ellipsoid_points
 from .tracking import Tracks
 
@@ -80,13 +80,6 @@ def _interpolate_poses(R: np.ndarray, t: np.ndarray, good: np.ndarray) -> tuple[
         t[miss, k] = np.interp(miss, idx, t[idx, k])
     R[miss] = np.stack([M @ cv2.Rodrigues(rel[i])[0] for i in miss])
     return R, t
-
-
-def mean_rotation(R: np.ndarray) -> np.ndarray:
-    """Chordal L2 mean of rotations ``(N, 3, 3)``: the rotation nearest to their arithmetic mean."""
-    u, _, vt = np.linalg.svd(R.mean(0))
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 def smooth_poses(poses: np.ndarray, sigma: float) -> np.ndarray:

@@ -1,0 +1,176 @@
+"""The head poses a run was taught, and edits outside them (``render --yaw/--pitch/--roll``,
+``--strict-pose``, ``sway:``): the range round-trips through the run folder, a run trained within
++-2 degrees of yaw warns at 15 degrees and not at 1, ``--strict-pose`` refuses, per-frame tracks
+reach the right frames, and the idle motion stays inside the range."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from adnerf.cli import main
+from adnerf.commands import render_video
+from adnerf.commands.pose_edits import angle_tracks, edit_poses, parse_angle, sway
+from adnerf.commands.render_video import RenderError, render_audio_video, render_frames
+from adnerf.io import AudioTrack, write_video
+from adnerf.model.data import load_dataset
+from adnerf.model.pose_range import PoseRange
+from adnerf.model.run_folder import load_run, taught_pose_range
+from adnerf.model.train import TrainConfig, train
+from adnerf.pose import HeadPose, euler_rotation
+from adnerf.synth import SynthConfig, synthesize
+
+SCENE = SynthConfig(seconds=1.6, size=32, voice="formant", seed=5, max_yaw=2.0)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return synthesize(tmp_path_factory.mktemp("range") / "data", SCENE)
+
+
+@pytest.fixture(scope="module")
+def run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cfg = TrainConfig(head_iters=4, torso_iters=2, rays=64, log_every=2, checkpoint_every=4)
+    return train(scene, tmp_path_factory.mktemp("rangerun") / "run", config=cfg, progress=False)
+
+
+@pytest.fixture(scope="module")
+def speech(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """0.4 s of a loud tone with a pulse (check_speech wants sound), as an mp4's audio."""
+    sr = 16000
+    t = np.arange(int(0.4 * sr)) / sr
+    path = tmp_path_factory.mktemp("speech") / "speech.mp4"
+    write_video(path, np.zeros((10, 16, 16, 3), np.uint8), 25.0, AudioTrack((0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), sr, 0.0))
+    return path
+
+
+def _poses(yaw_deg: np.ndarray, base: tuple[float, float, float] = (0.4, 0.1, 0.0)) -> np.ndarray:
+    """Poses whose rotation is ``R_y(yaw) @ B`` for a fixed ``B``, at a fixed translation."""
+    like = torch.zeros((), dtype=torch.float64)
+    B = euler_rotation(*base, like=like).numpy()
+    out = np.tile(np.eye(4), (len(yaw_deg), 1, 1))
+    out[:, :3, :3] = euler_rotation(torch.as_tensor(np.radians(yaw_deg)), 0.0, 0.0, like=like).numpy() @ B
+    out[:, :3, 3] = [0.0, 0.1, 5.0]
+    return out
+
+
+def test_the_range_is_measured_about_the_mean_rotation_and_in_the_edits_axes() -> None:
+    """Yaws of -2..+2 degrees about a tilted base pose read back as yaw -2..+2, pitch and roll 0
+    (so a range is not an artefact of the canonical frame's orientation), with a 1-degree
+    histogram of 4 bins."""
+    yaws = np.linspace(-2.0, 2.0, 41)
+    r = PoseRange.from_poses(_poses(yaws), head_width=2.0)
+    np.testing.assert_allclose(r.rotation[0], [-2.0, 2.0], atol=1e-9)
+    np.testing.assert_allclose(r.rotation[1:], 0.0, atol=1e-9)
+    assert sum(r.histogram[0]) == 41 and len(r.histogram[0]) == 5  # bins -2..-1, ..., 2..3 (the max on an edge)
+    rot, trans = r.excess(_poses(np.array([0.0, 3.0, -7.0])))
+    np.testing.assert_allclose(rot[:, 0], [0.0, 1.0, 5.0], atol=1e-9)
+    assert not trans.any()
+    assert r.check(_poses(np.array([6.9]))) is None  # 4.9 past: inside the 5-degree margin
+    assert "yaw +7.5" in r.check(_poses(np.array([7.5])))
+
+
+def test_the_range_round_trips_through_its_dict_and_json() -> None:
+    r = PoseRange.from_poses(_poses(np.linspace(-1.5, 3.0, 10)), head_width=1.5)
+    back = PoseRange.from_dict(json.loads(json.dumps(r.to_dict())))
+    for name in ("reference", "translation"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(r, name))
+    np.testing.assert_allclose(back.rotation, r.rotation, atol=1e-4)
+    assert back.histogram == r.histogram and back.frames == r.frames and back.head_width == r.head_width
+    with pytest.raises(ValueError, match="not a stored pose range"):
+        PoseRange.from_dict({"reference": [1, 0, 0]})
+
+
+def test_a_run_records_its_training_frames_pose_range(scene: Path, run: Path) -> None:
+    """run.json holds the training frames' range (not the held-out ones'), and a run written before
+    the range was stored gets the same from its dataset."""
+    ds = load_dataset(scene)
+    doc = json.loads((run / "run.json").read_text())
+    stored = PoseRange.from_dict(doc["pose_range"])
+    assert stored.frames == len(ds.meta.train) < ds.meta.n_frames
+    np.testing.assert_allclose(stored.rotation, taught_pose_range(ds.poses, ds.meta).rotation, atol=1e-4)
+    assert np.abs(stored.rotation[0]).max() < 2.5  # the scene's yaw spans +-2 degrees
+    del doc["pose_range"]
+    (run / "run.json").write_text(json.dumps(doc))
+    try:
+        older = load_run(run).pose_range
+    finally:
+        doc["pose_range"] = stored.to_dict()
+        (run / "run.json").write_text(json.dumps(doc))
+    assert older is not None
+    np.testing.assert_allclose(older.rotation, stored.rotation, atol=1e-4)
+
+
+def test_render_warns_far_outside_the_taught_yaw_and_strict_pose_refuses(run: Path, speech: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    argv = ["render", str(run), "--audio", str(speech)]
+    assert main([*argv, "--yaw", "1", "-o", str(tmp_path / "near.mp4")]) == 0
+    assert "outside what the training frames showed" not in capsys.readouterr().err
+    assert main([*argv, "--yaw", "15", "-o", str(tmp_path / "far.mp4")]) == 0
+    err = capsys.readouterr().err
+    assert "adnerf: warning:" in err and "outside what the training frames showed" in err and "yaw +1" in err
+    assert main([*argv, "--yaw", "15", "--strict-pose", "-o", str(tmp_path / "refused.mp4")]) != 0
+    assert "--strict-pose refuses" in capsys.readouterr().err
+    assert not (tmp_path / "refused.mp4").exists()
+
+
+def test_a_per_frame_yaw_file_turns_each_frame_by_its_own_angle(scene: Path, run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Frame k of a track gets the track's k-th angle: the rendered poses equal the constant edit
+    of that angle, frame by frame (a track read in the wrong order or applied to every frame fails)."""
+    ds, r = load_dataset(scene), load_run(run)
+    seen: list[HeadPose] = []
+    real = render_video.render_frame
+
+    def spy(model, camera, pose, code, plate, **kw):  # noqa: ANN001, ANN003, ANN202
+        seen.append(pose)
+        return real(model, camera, pose, code, plate, **kw)
+
+    monkeypatch.setattr(render_video, "render_frame", spy)
+    idx = ds.meta.test[:3]
+    plate = ds.background.astype(np.float32) / 255.0
+    render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=np.array([0.0, 10.0, -4.0]))
+    tracked = [p.R.clone() for p in seen]
+    for k, angle in enumerate((0.0, 10.0, -4.0)):
+        seen.clear()
+        render_frames(r, ds.features[idx[k : k + 1]], ds.poses[idx[k : k + 1]], plate, yaw=angle)
+        torch.testing.assert_close(tracked[k], seen[0].R, atol=1e-12, rtol=0)
+    with pytest.raises(RenderError, match="one angle per frame"):
+        render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=np.zeros(2))
+
+
+def test_the_idle_sway_stays_inside_the_taught_range(scene: Path) -> None:
+    """An amplitude far larger than the range is held inside it on every frame and axis swayed,
+    for yaw (an exactly additive edit) and pitch (not additive: held by iterating)."""
+    ds = load_dataset(scene)
+    taught = taught_pose_range(ds.poses, ds.meta)
+    poses = ds.poses[np.arange(200) % ds.meta.n_frames]
+    tracks = {"yaw": parse_angle("sway:20,3"), "pitch": parse_angle("sway:20,5")}
+    angles = angle_tracks(tracks, poses, 25.0, taught)
+    got = taught.angles(edit_poses(poses, angles))
+    for k in (0, 1):
+        assert got[:, k].min() >= taught.rotation[k, 0] - 1e-6 and got[:, k].max() <= taught.rotation[k, 1] + 1e-6
+        assert np.ptp(angles[:, k]) > 0.5 * np.ptp(taught.rotation[k])  # it moves, not clamped to nothing
+    assert taught.check(edit_poses(poses, angles)) is None
+
+
+def test_sway_is_smooth_bounded_and_starts_at_rest() -> None:
+    a = sway(250, 25.0, 3.0, 6.0)
+    assert a[0] == 0.0 and np.abs(a).max() <= 3.0
+    assert np.abs(np.diff(a)).max() < 2 * math.pi * 3.0 * 2.71 / 6.0 / 25.0 + 1e-9  # no jumps: bounded by the fastest term's slope
+
+
+@pytest.mark.parametrize("bad", ["sway:0,5", "sway:2", "sway:40,5", "sway:2,-1", "200", "left", "nan"])
+def test_bad_angle_specs_are_refused_with_what_is_accepted(bad: str) -> None:
+    with pytest.raises(ValueError, match="sway|degrees"):
+        parse_angle(bad)
+
+
+def test_a_sway_needs_a_known_range(run: Path, speech: Path, tmp_path: Path) -> None:
+    r = load_run(run)
+    r.pose_range = None
+    with pytest.raises(RenderError, match="pose range the run was taught"):
+        render_audio_video(r, speech, tmp_path / "x.mp4", yaw="sway:2,5")
