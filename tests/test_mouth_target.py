@@ -16,7 +16,7 @@ from adnerf.model.data import DatasetError, load_dataset
 from adnerf.model.mouth_target import MouthProbe, mouth_targets, opening_signal
 from adnerf.model.run_folder import RunError, stored_config
 from adnerf.model.train import TrainConfig, Trainer, train
-from adnerf.model.talking_head import model_config
+from adnerf.model.talking_head import ModelConfig, model_config
 from adnerf.synth import SynthConfig, synthesize
 
 
@@ -160,7 +160,7 @@ def test_training_fits_the_read_out_and_a_resume_restores_it(scene: Path, tmp_pa
     assert len(lips) == 4 and lips == sorted(lips, reverse=True) and lips[-1] < 0.6 * lips[0]
     # The read-out of the trained codes follows the true jaw on the training frames.
     ds = load_dataset(scene)
-    trainer = Trainer(tmp_path / "whole", ds, model_config(ds.meta), cfg, "cpu", False)
+    trainer = Trainer(tmp_path / "whole", ds, ModelConfig.from_dict(json.loads((whole / "run.json").read_text())["model"]), cfg, "cpu", False)
     trainer.load(a)
     with torch.no_grad():
         pred = trainer.mouth_probe(trainer.model.frame_codes(trainer.windows, torch.tensor(ds.meta.train)))[:, 0].numpy()
@@ -229,3 +229,50 @@ def test_the_target_is_used_only_where_the_audio_predicts_the_opening(scene: Pat
     assert Trainer(tmp_path / "forced", ds, model_config(ds.meta), TrainConfig(lip_min_signal=-1.0), "cpu", False).mouth_probe is not None
     with pytest.raises(ValueError, match="lip_min_signal"):
         TrainConfig(lip_min_signal=1.5).validate()
+
+
+def test_the_mouth_code_is_zero_for_the_mean_mouth_and_tells_openings_apart() -> None:
+    from adnerf.model.conditions import SIGNAL_WIDTHS, mouth_code
+
+    assert torch.equal(mouth_code(torch.zeros(2)), torch.zeros(SIGNAL_WIDTHS["mouth"]))
+    v = torch.linspace(-4.0, 4.0, 81, dtype=torch.float64)
+    codes = mouth_code(torch.stack([v, torch.zeros_like(v)], -1))
+    assert torch.all(torch.diff(codes[:, 0]) > 0)  # the lowest frequency orders the openings
+    assert torch.equal(codes[:, 6:], torch.zeros_like(codes[:, 6:]))  # the width's half reads the width alone
+    gaps = torch.cdist(codes, codes) + torch.eye(len(v), dtype=torch.float64)
+    assert gaps.min() > 0.01  # every opening 0.1 apart has a code of its own
+
+
+def test_a_head_that_reads_the_mouth_is_given_each_frames_own_when_training_and_the_read_out_when_rendering(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Training conditions a frame on its landmarks' mouth (and an eye batch on the mouth of the
+    frame whose speech it borrows); rendering on the model's read-out of the code; a run trained
+    with mouth_input 0 reads no mouth."""
+    from adnerf.model.run_folder import load_run
+    from adnerf.model.talking_head import TalkingHead
+
+    cfg = TrainConfig(head_iters=6, torso_iters=2, lip_weight=1.0, lip_min_signal=-1.0, mouth_input=1, checkpoint_every=6, log_every=2)
+    run_dir = train(scene, tmp_path / "mouth", config=cfg, progress=False)
+    doc = json.loads((run_dir / "run.json").read_text())
+    assert doc["model"]["mouth_dim"] == 12
+    run = load_run(run_dir)
+    assert run.model.reads_mouth and run.model.layers["head"].conditions[-1] == "mouth" and not any("mouth" in c for c in run.model.layers["torso"].conditions)
+    ds = load_dataset(scene)
+    trainer = Trainer(run_dir, ds, run.model.config, cfg, "cpu", False)
+    targets, _ = mouth_targets(ds.landmarks, ds.meta.train)
+    code = torch.zeros(run.model.config.audio_dim)
+    pose = ds.head_pose(3)
+    torch.testing.assert_close(trainer.condition(3, code, pose).extra["mouth"], torch.as_tensor(targets[3]))
+    torch.testing.assert_close(trainer.condition(3, code, pose, speech=7).extra["mouth"], torch.as_tensor(targets[7]))
+    with torch.no_grad():
+        codes = run.model.frame_codes(torch.as_tensor(ds.features), [0, 5])
+        rendered = run.model.condition(codes[1], pose).extra["mouth"]
+        torch.testing.assert_close(rendered, run.model.mouth_from_codes(codes[1]))
+    assert not torch.equal(rendered, torch.as_tensor(targets[5]))  # the read-out, not the landmarks
+    # The probe the trainer fits is the model's own (saved with the weights rendering loads).
+    assert trainer.mouth_probe is trainer.model.mouth_probe
+    # mouth_input 0: the mouth target alone, as before.
+    plain = train(scene, tmp_path / "plain", config=TrainConfig(head_iters=2, torso_iters=0, lip_weight=1.0, lip_min_signal=-1.0, mouth_input=0), progress=False)
+    assert json.loads((plain / "run.json").read_text())["model"]["mouth_dim"] == 0
+    assert not load_run(plain).model.reads_mouth
+    with pytest.raises(ValueError, match="does not read the mouth"):
+        TalkingHead(model_config(ds.meta)).mouth_from_codes(code)

@@ -174,3 +174,38 @@ def test_a_sway_needs_a_known_range(run: Path, speech: Path, tmp_path: Path) -> 
     r.pose_range = None
     with pytest.raises(RenderError, match="pose range the run was taught"):
         render_audio_video(r, speech, tmp_path / "x.mp4", yaw="sway:2,5")
+
+
+def test_the_sweeps_lifted_landmarks_turn_with_the_head() -> None:
+    """Landmarks lifted with the head layer's depth and turned with the head land where the turned
+    head's points project: an exact depth map of points on a sphere, landmarks at pixel centres,
+    a 12-degree yaw. A depth taken as z instead of the distance along the unit ray moves them by
+    pixels."""
+    from adnerf.evaluation.pose_sweep import _FACE, _lifted, _project
+
+    class _Run:
+        meta = {"intrinsics": (120.0, 120.0, 32.0, 32.0)}
+
+    h = w = 64
+    pose = HeadPose(euler_rotation(0.1, -0.05, 0.02, like=torch.zeros((), dtype=torch.float64)), torch.tensor([0.05, -0.02, 4.0], dtype=torch.float64))
+    fx, fy, cx, cy = _Run.meta["intrinsics"]
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    d = np.stack([(jj - cx) / fx, (ii - cy) / fy, np.ones_like(jj)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    centre = pose.t.numpy()  # a sphere of radius 1 about the head centre: distance along each ray to it
+    b = d @ centre
+    disc = b**2 - (centre @ centre - 1.0)
+    depth = np.where(disc > 0, b - np.sqrt(np.maximum(disc, 0)), 0.0)
+    opacity = (disc > 0).astype(np.float32)
+    landmarks = np.zeros((68, 2))
+    rng = np.random.default_rng(0)
+    landmarks[_FACE] = rng.integers(24, 40, size=(len(_FACE), 2)) + 0.5  # pixel centres on the sphere's face
+    points, kept = _lifted(_Run, landmarks, depth, opacity, pose)
+    assert len(kept) == len(_FACE)
+    np.testing.assert_allclose(_project(_Run, points, pose), landmarks[kept], atol=1e-9)
+    turned = pose.perturbed(yaw=math.radians(12.0))
+    cam = depth[landmarks[kept, 1].astype(int), landmarks[kept, 0].astype(int), None] * d[landmarks[kept, 1].astype(int), landmarks[kept, 0].astype(int)]
+    moved = ((turned.R @ pose.R.T @ (torch.as_tensor(cam) - pose.t).T).T + turned.t).numpy()
+    expected = np.stack([fx * moved[:, 0] / moved[:, 2] + cx, fy * moved[:, 1] / moved[:, 2] + cy], 1)
+    np.testing.assert_allclose(_project(_Run, points, turned), expected, atol=1e-9)
+    assert np.abs(expected - landmarks[kept]).max() > 3.0  # the turn moved them: the check above is not trivial

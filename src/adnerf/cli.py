@@ -151,6 +151,10 @@ def _cmd_bench_fields(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.2f}"
+
+
 def _cmd_bench_real(args: argparse.Namespace) -> int:
     from .bench.real import bench_real, plot_mouth_opening
 
@@ -172,6 +176,7 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
             seed=args.seed,
             iterations=args.iters,
             drive=tuple(args.drive),
+            sweep=args.sweep,
             log=_log,
         )
     except ValueError as exc:
@@ -180,11 +185,10 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
     table = "\n".join(f"{k:>18}: {row.get(k, row['syncnet'] if k.startswith('lse') else None)}" for k in keys) + f"\n{'contact sheet':>18}: {row['sheet']}"
     lips = row["lip_signal"]
 
-    def two(v: float | None) -> str:
-        return "n/a" if v is None else f"{v:.2f}"
-
-    ceiling = lips.get("unavailable") or f"audio -> true opening, ridge corr held out {two(lips['ridge_tail_corr'])}, cross-validated {two(lips['ridge_cv_corr'])} (adnerf lip-signal)"
+    ceiling = lips.get("unavailable") or f"audio -> true opening, ridge corr held out {_fmt(lips['ridge_tail_corr'])}, cross-validated {_fmt(lips['ridge_cv_corr'])} (adnerf lip-signal)"
     table += f"\n{'clip lip signal':>18}: {ceiling}"
+    for r in (row["pose_sweep"] or {}).get("rows", []):
+        table += f"\n{'yaw ' + format(r['yaw'], '+g'):>18}: face landmarks {_fmt(r['identity_px'])} px off a rigid turn, sharpness x{_fmt(r['sharpness'])}, neck gap {_fmt(r['neck_gap'])}, torso change {_fmt(r['torso_change'])} (past the taught yaw by {r.get('yaw_past_range')} deg)"
     for d in row["driven"]:
         table += f"\n{'driven':>18}: {d['audio']} ({d['lips']}): lips vs speech activity corr {d['corr']}, best shift {d['offset']} frames ({d['corr_at_offset']})"
         if "lse_d" in d:
@@ -534,6 +538,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     ds = load_dataset(args.dataset)
     metrics, _ = evaluate_run(run, ds, args.split, landmarks=not args.no_landmarks, lpips=model, syncnet=sync)
     metrics["lpips"] = metrics.get("lpips", "no weights")
+    if args.sweep:
+        from .evaluation.pose_sweep import SWEEP_YAWS, pose_sweep, spread, sweep_sheet
+
+        frames = spread(getattr(ds.meta, args.split), args.sweep)
+        metrics["pose_sweep"], renders = pose_sweep(run, ds, frames)
+        if args.sweep_sheet:
+            sweep_sheet(args.sweep_sheet, renders, SWEEP_YAWS, [f"frame {f}" for f in frames])
     metrics.pop("syncnet_curve", None)
     metrics = {k: v for k, v in metrics.items() if not k.startswith("mouth_opening_")}  # the per-frame series: bench real --plot draws them
     if args.json:
@@ -615,6 +626,7 @@ def build_parser() -> argparse.ArgumentParser:
     real.add_argument("--seed", type=_number(int, 0), default=0, help="training seed")
     real.add_argument("--iters", type=_head_torso_iters, default=None, help="HEAD,TORSO iterations instead of the schedule fitted to --minutes (equal schedules for comparisons)")
     real.add_argument("--drive", action="append", default=[], metavar="AUDIO", help="another speech file to drive the trained run with (repeat for more); reports how its lips follow that speech")
+    real.add_argument("--sweep", type=_count, default=6, metavar="FRAMES", help="held-out frames rendered with the head turned by 0, 5, 10, 15 and 20 degrees of yaw (face geometry, sharpness, neck, torso against the un-edited render; a contact sheet); 0 skips it")
     real.add_argument("--plot", default=None, help="write a PNG of the true and rendered mouth opening over the held-out frames")
     real.add_argument("--json", action="store_true", help="one JSON line on stdout, the table on stderr")
     real.set_defaults(func=_cmd_bench_real)
@@ -743,6 +755,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--lpips-backbone", default=None, help="AlexNet weights for LPIPS (default: the torch hub cache's alexnet-owt-7be5be79.pth, if there)")
     ev.add_argument("--lpips-linear", default=None, help="LPIPS linear layers (default: those the lpips package ships, if installed)")
     ev.add_argument("--syncnet", default=None, metavar="CHECKPOINT", help="SyncNet checkpoint (syncnet_v2.model of the public release) for LSE-D / LSE-C; without it they read \"no weights\" (nothing is downloaded)")
+    ev.add_argument("--sweep", type=_count, default=0, metavar="FRAMES", help="also render this many frames of the split with the head turned by 0, 5, 10, 15 and 20 degrees of yaw and measure how the face, the neck and the torso hold up (pose_sweep in the output); 0: no sweep")
+    ev.add_argument("--sweep-sheet", default=None, metavar="PNG", help="with --sweep: a contact sheet of the sweep's renders")
     ev.add_argument("--json", action="store_true", help="one JSON object on stdout")
     ev.set_defaults(func=_cmd_evaluate)
     return parser

@@ -106,6 +106,21 @@ def _sheet(path: Path, ds, frames: list[int], rendered: np.ndarray, count: int =
     return contact_sheet(path, rows, ["true (held out)", "render", "true mouth", "rendered mouth"], [f"frame {frames[k]}" for k in picks])
 
 
+def _sweep(run, ds, sheet: Path, count: int, log: Callable[[str], None]) -> dict:  # noqa: ANN001
+    """The pose sweep of ``count`` held-out frames spread over the tail, with its contact sheet."""
+    from ..evaluation.pose_sweep import SWEEP_YAWS, pose_sweep, spread, sweep_sheet
+
+    t0 = time.perf_counter()
+    frames = spread(ds.meta.test, count)
+    log(f"turning the head of {len(frames)} held-out frames by {', '.join(f'{y:g}' for y in SWEEP_YAWS)} degrees")
+    rows, renders = pose_sweep(run, ds, frames)
+    shown = np.linspace(0, len(frames) - 1, min(3, len(frames))).round().astype(int)
+    h, w = ds.meta.height, ds.meta.width
+    zoom = (w // 4, h // 8, 3 * w // 4, 5 * h // 8) if h >= 64 else None
+    sweep_sheet(sheet, renders[shown], SWEEP_YAWS, [f"frame {frames[k]}" for k in shown], zoom=zoom)
+    return {"frames": frames, "rows": rows, "sheet": str(sheet), "seconds": time.perf_counter() - t0}
+
+
 def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None = None, syncnet=None) -> dict:
     """Render ``run`` driven by the speech in ``audio_path`` over the dataset's held-out poses
     (played forwards and backwards) and measure how the rendered lips follow that speech.
@@ -171,6 +186,7 @@ def bench_real(
     seed: int = 0,
     iterations: tuple[int, int] | None = None,
     drive: tuple[str | Path, ...] = (),
+    sweep: int = 6,
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict:
@@ -195,6 +211,9 @@ def bench_real(
         iterations: ``(head, torso)`` iterations instead of the schedule fitted to ``minutes``
             (the probe's speed depends on the machine's load; comparisons want equal schedules).
         drive: Other speech files to drive the trained run with (step 6).
+        sweep: Held-out frames rendered with the head turned by each of
+            :data:`~adnerf.evaluation.pose_sweep.SWEEP_YAWS` (:func:`~adnerf.evaluation.pose_sweep.pose_sweep`),
+            with a contact sheet; 0 skips it.
         progress: Progress bars.
         log: Where step messages go.
 
@@ -262,6 +281,10 @@ def bench_real(
     sheet = _sheet(folder / "bench_real.png", ds, list(ds.meta.test), rendered.frames)
     seconds["sheet"] = time.perf_counter() - t0
 
+    swept = _sweep(run, ds, folder / "bench_real_sweep.png", sweep, log) if sweep else None
+    if swept is not None:
+        seconds["sweep"] = swept.pop("seconds")
+
     driven: list[dict] = []
     if drive:
         from ..audio.features import voiced_loudness
@@ -313,6 +336,8 @@ def bench_real(
         "lpips": metrics.get("lpips", "no weights"),
         "syncnet": metrics["syncnet"],
         "driven": driven,
+        "pose_range": run.pose_range.to_dict()["rotation_deg"] if run.pose_range is not None else None,
+        "pose_sweep": swept,
         "seconds": {k: round(v, 1) for k, v in seconds.items()},
         "sheet": str(sheet),
         "dataset": str(data),

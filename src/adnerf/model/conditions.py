@@ -23,14 +23,16 @@ from torch import Tensor
 from ..fields import POSE_CODE_DIM
 from ..pose import HeadPose
 
-__all__ = ["EYE_FREQUENCIES", "FrameCondition", "SIGNAL_WIDTHS", "eye_code", "signal_width"]
+__all__ = ["EYE_FREQUENCIES", "FrameCondition", "MOUTH_FREQUENCIES", "SIGNAL_WIDTHS", "eye_code", "mouth_code", "signal_width"]
 
 EYE_FREQUENCIES = 4
+MOUTH_FREQUENCIES = 3
 
 # Widths of the signals other than the audio code (whose width is the model's ``audio_dim``).
 SIGNAL_WIDTHS = {
     "pose": POSE_CODE_DIM,  # the head pose's continuous code
     "eye": 2 * EYE_FREQUENCIES,  # eye openness (a dataset's eye.npy), through eye_code
+    "mouth": 2 * 2 * MOUTH_FREQUENCIES,  # the mouth's opening and width (standardised), through mouth_code
 }
 
 
@@ -51,6 +53,20 @@ def eye_code(openness: Tensor) -> Tensor:
     return torch.cat([torch.sin(angle), 1.0 - torch.cos(angle)], dim=-1)
 
 
+def mouth_code(mouth: Tensor) -> Tensor:
+    """The code ``(..., 4 * MOUTH_FREQUENCIES)`` a field reads for the mouth ``(..., 2)``: its
+    opening and width in standard deviations of the training frames about their mean
+    (:func:`adnerf.model.mouth_target.mouth_targets`).
+
+    Per value ``v`` and ``k = 1 .. MOUTH_FREQUENCIES``: ``sin(k pi v / 8)`` and ``1 - cos(k pi v / 8)``:
+    all 0 for the mean mouth, the lowest frequency monotonic over ``+-4`` standard deviations, and
+    each degree of opening a direction of its own (as :func:`eye_code` does for the lids).
+    """
+    k = torch.arange(1, MOUTH_FREQUENCIES + 1, dtype=mouth.dtype, device=mouth.device)
+    angle = (math.pi / 8.0) * mouth[..., :, None] * k  # (..., 2, K)
+    return torch.cat([torch.sin(angle), 1.0 - torch.cos(angle)], dim=-1).flatten(-2)
+
+
 @dataclass
 class FrameCondition:
     """The signals of one frame, or of each ray of a batch drawn from several frames.
@@ -59,8 +75,8 @@ class FrameCondition:
         audio: Audio code ``(audio_dim,)``; per ray ``(R, audio_dim)``.
         pose: The frame's head pose, one ``R (3, 3)``, ``t (3,)`` (canonical to camera); per ray
             ``R (R, 3, 3)``, ``t (R, 3)``.
-        extra: Further named signals, each ``(width,)`` (``"eye"``: the openness, ``(1,)``); per
-            ray ``(R, width)``.
+        extra: Further named signals, each ``(width,)`` (``"eye"``: the openness, ``(1,)``;
+            ``"mouth"``: the standardised opening and width, ``(2,)``); per ray ``(R, width)``.
     """
 
     audio: Tensor
@@ -104,7 +120,7 @@ class FrameCondition:
 
     def signal(self, name: str) -> Tensor:
         """One signal by name: ``"audio"``, ``"pose"`` (its 9-d code), ``"eye"`` (its code,
-        :func:`eye_code`) or another key of ``extra``.
+        :func:`eye_code`), ``"mouth"`` (its code, :func:`mouth_code`) or another key of ``extra``.
 
         Raises:
             KeyError: No such signal in this frame.
@@ -115,6 +131,8 @@ class FrameCondition:
             return self.pose.code()
         if name == "eye" and name in self.extra:
             return eye_code(self.extra[name])
+        if name == "mouth" and name in self.extra:
+            return mouth_code(self.extra[name])
         if name in self.extra:
             return self.extra[name]
         raise KeyError(f"this frame has no {name!r} signal (it has audio, pose{''.join(', ' + k for k in self.extra)})")

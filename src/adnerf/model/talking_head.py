@@ -50,6 +50,7 @@ from ..rays import RayBundle
 from .conditions import SIGNAL_WIDTHS, FrameCondition, signal_width
 from .data import SceneMeta
 from .layers import RadianceLayer
+from .mouth_target import MouthProbe
 
 __all__ = [
     "FrameRender",
@@ -114,6 +115,10 @@ class ModelConfig:
         head_in_front: Draw the head over the torso (RAD-NeRF's and ER-NeRF's order); ``False``:
             the torso over the head (AD-NeRF's order, and that of runs whose stored configuration
             predates the option, which :meth:`from_dict` reads as ``False``).
+        mouth_dim: The width of the mouth's code (:func:`~adnerf.model.conditions.mouth_code`) when
+            the head reads the mouth's opening and width besides the audio code: training gives it
+            each frame's landmarks, rendering what the model's read-out of the audio code predicts
+            (:meth:`TalkingHead.mouth_from_codes`); 0: it does not (AD-NeRF, and runs made before).
     """
 
     feature_dim: int
@@ -132,11 +137,13 @@ class ModelConfig:
     occupancy_threshold: float = 0.01
     eye_dim: int = 0
     head_in_front: bool = True
+    mouth_dim: int = 0
 
     @property
     def head_conditions(self) -> tuple[str, ...]:
-        """What the head layer reads: the audio code, and the eye openness when ``eye_dim``."""
-        return ("audio", "eye") if self.eye_dim else ("audio",)
+        """What the head layer reads: the audio code, the eye openness when ``eye_dim`` and the
+        mouth when ``mouth_dim``."""
+        return ("audio",) + (("eye",) if self.eye_dim else ()) + (("mouth",) if self.mouth_dim else ())
 
     def to_dict(self) -> dict:
         """JSON-serialisable form."""
@@ -161,15 +168,17 @@ class ModelConfig:
         return ModelConfig(**d)
 
 
-def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", audio_dim: int = 64, eye: bool = False) -> ModelConfig:
+def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", audio_dim: int = 64, eye: bool = False, mouth: bool = False) -> ModelConfig:
     """The model for a dataset.
 
     ``"fast"``: tri-plane grids with small MLPs (the default; what trains on a CPU in minutes).
     ``"paper"``: AD-NeRF's 8x256 positional-encoding MLPs with 64 + 128 samples per ray.
     ``eye``: the head also reads the eye openness (for a dataset with ``eye.npy``).
+    ``mouth``: the head also reads the mouth's opening and width (:attr:`ModelConfig.mouth_dim`).
     """
     eye_dim = SIGNAL_WIDTHS["eye"] if eye else 0
-    head_cond = audio_dim + eye_dim
+    mouth_dim = SIGNAL_WIDTHS["mouth"] if mouth else 0
+    head_cond = audio_dim + eye_dim + mouth_dim
     torso_cond = audio_dim + POSE_CODE_DIM
     if preset == "paper":
         return ModelConfig(
@@ -184,6 +193,7 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
             head_samples=(64, 128),
             torso_samples=(64, 128),
             eye_dim=eye_dim,
+            mouth_dim=mouth_dim,
         )
     if preset != "fast":
         raise ValueError(f"unknown model preset {preset!r}; choose fast or paper")
@@ -205,6 +215,7 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
         torso_aabb=meta.torso_aabb,
         audio_dim=audio_dim,
         eye_dim=eye_dim,
+        mouth_dim=mouth_dim,
     )
 
 
@@ -247,19 +258,41 @@ class TalkingHead(nn.Module):
         self.register_buffer("feature_std", torch.ones(config.feature_dim))
         # Whether AudioAttNet filters the codes (frame_codes): part of the model, saved with it.
         self.register_buffer("audio_smoothing", torch.zeros((), dtype=torch.bool))
+        # A head that reads the mouth gets it, when rendering, from this read-out of the audio code.
+        self.mouth_probe = MouthProbe(config.audio_dim) if config.mouth_dim else None
 
     @property
     def reads_eye(self) -> bool:
         """Whether a layer reads the eye openness (the model can blink on command)."""
         return any("eye" in layer.conditions for layer in self.layers.values())
 
-    def condition(self, code: Tensor, pose: HeadPose, eye: float | Tensor | None = None) -> FrameCondition:
-        """A frame's condition from its audio code ``(audio_dim,)``, head pose and eye openness
-        (a number or ``(1,)``; ``None``: open, 1). The eye is left out for models that do not read it."""
-        if not self.reads_eye:
-            return FrameCondition(code, pose)
-        value = torch.as_tensor(1.0 if eye is None else eye, dtype=code.dtype, device=code.device).reshape(1)
-        return FrameCondition(code, pose, {"eye": value})
+    @property
+    def reads_mouth(self) -> bool:
+        """Whether a layer reads the mouth's opening and width besides the audio code."""
+        return any("mouth" in layer.conditions for layer in self.layers.values())
+
+    def mouth_from_codes(self, codes: Tensor) -> Tensor:
+        """The mouth ``(..., 2)`` (standardised opening and width) the model's read-out predicts
+        from audio codes ``(..., audio_dim)``: what a head that reads the mouth is given when
+        rendering new audio.
+
+        Raises:
+            ValueError: The model does not read the mouth.
+        """
+        if self.mouth_probe is None:
+            raise ValueError("this model's head does not read the mouth (mouth_dim 0)")
+        return self.mouth_probe(codes)
+
+    def condition(self, code: Tensor, pose: HeadPose, eye: float | Tensor | None = None, mouth: Tensor | None = None) -> FrameCondition:
+        """A frame's condition from its audio code ``(audio_dim,)``, head pose, eye openness (a
+        number or ``(1,)``; ``None``: open, 1) and mouth (``(2,)``; ``None``: the read-out of the
+        code, :meth:`mouth_from_codes`). A signal the model does not read is left out."""
+        extra = {}
+        if self.reads_eye:
+            extra["eye"] = torch.as_tensor(1.0 if eye is None else eye, dtype=code.dtype, device=code.device).reshape(1)
+        if self.reads_mouth:
+            extra["mouth"] = (self.mouth_from_codes(code) if mouth is None else torch.as_tensor(mouth, device=code.device)).to(code.dtype).reshape(2)
+        return FrameCondition(code, pose, extra)
 
     def fit_feature_scale(self, windows: Tensor) -> None:
         """Set the standardisation from training windows ``(N, 16, D)`` (a zero std is left at 1)."""

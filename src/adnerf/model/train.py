@@ -39,6 +39,7 @@ from functools import cached_property
 from pathlib import Path
 from typing import Callable, Iterator, Literal
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
@@ -266,6 +267,47 @@ def stop_on_signals(trainer: "Trainer") -> Iterator[None]:
             signal.signal(sig, handler)
 
 
+@dataclass
+class MouthPlan:
+    """Whether stage 1 trains the mouth target, and on what (:func:`mouth_plan`).
+
+    Attributes:
+        used: Whether the target is trained.
+        doc: What ``run.json`` records as ``mouth_target``: ``used``, the clip's ``signal`` and
+            ``min_signal``, or ``why`` not.
+        targets: ``(N, 2)`` the standardised opening and width of every frame (when used).
+        valid: ``(N,)`` bool, the frames with a target (when used).
+    """
+
+    used: bool
+    doc: dict
+    targets: "np.ndarray | None" = None
+    valid: "np.ndarray | None" = None
+
+
+def mouth_plan(ds: TalkingHeadDataset, tcfg: TrainConfig) -> MouthPlan:
+    """Whether the mouth target is trained on ``ds``: with ``lip_weight`` above 0, landmarks, and
+    audio that predicts the training frames' opening at least ``lip_min_signal`` (cross-validated).
+
+    Raises:
+        RunError: The landmarks give no usable target (e.g. a mouth that never moves).
+    """
+    if tcfg.lip_weight <= 0 or ds.landmarks is None:
+        return MouthPlan(False, {"used": False, "why": "lip_weight is 0" if tcfg.lip_weight <= 0 else "the dataset has no landmarks.npy"})
+    try:
+        targets, valid = mouth_targets(ds.landmarks, ds.meta.train)
+    except ValueError as exc:
+        raise RunError(f"{ds.root}/landmarks.npy: {exc}; train with {{\"lip_weight\": 0}} (--config) to go on without the mouth target") from exc
+    signal = opening_signal(ds.features, targets, valid, ds.meta.train)
+    known = not math.isnan(signal)
+    used = (known and signal >= tcfg.lip_min_signal) or tcfg.lip_min_signal <= -1
+    doc = {"used": used, "signal": round(signal, 4) if known else None, "min_signal": tcfg.lip_min_signal}
+    if not used:
+        said = f"predicts the training frames' mouth opening at {signal:.2f} (cross-validated correlation)" if known else "cannot be cross-validated on so few training frames"
+        doc["why"] = f"the audio {said}, under lip_min_signal {tcfg.lip_min_signal:g}: the audio code learns from the photometric loss alone"
+    return MouthPlan(used, doc, targets if used else None, valid if used else None)
+
+
 class Trainer:
     """A training session of a talking head on a dataset, stepped by its stages.
 
@@ -282,9 +324,11 @@ class Trainer:
         device: Where to train.
         progress: Show progress bars.
         ranks: This process among the training processes (:mod:`adnerf.model.distributed`).
+        plan: Whether and on what the mouth target is trained (:func:`mouth_plan` of ``ds`` and
+            ``tcfg`` when ``None``).
     """
 
-    def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool, ranks: Ranks = Ranks()) -> None:
+    def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool, ranks: Ranks = Ranks(), plan: "MouthPlan | None" = None) -> None:
         self.root, self.ds, self.tcfg, self.device, self.ranks = root, ds, tcfg, device, ranks
         self.progress = progress and ranks.main
         torch.manual_seed(tcfg.seed)
@@ -330,29 +374,21 @@ class Trainer:
         )
         self.opt_torso = torch.optim.Adam(list(m.layers["torso"].parameters()), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
         # The mouth targets the audio code is asked to predict (stage 1), from the landmarks, where
-        # the clip's audio predicts them (mouth_doc says whether and why, for run.json).
+        # the clip's audio predicts them (mouth_doc says whether and why, for run.json). A head that
+        # reads the mouth is given each frame's own; its read-out is the model's (rendering uses it).
         self.mouth_probe: MouthProbe | None = None
         self.lip_window: list[torch.Tensor] = []
-        self.mouth_doc: dict = {"used": False, "why": "lip_weight is 0" if tcfg.lip_weight <= 0 else "the dataset has no landmarks.npy"}
-        if tcfg.lip_weight > 0 and ds.landmarks is not None:
-            try:
-                targets, valid = mouth_targets(ds.landmarks, ds.meta.train)
-            except ValueError as exc:
-                raise RunError(f"{ds.root}/landmarks.npy: {exc}; train with {{\"lip_weight\": 0}} (--config) to go on without the mouth target") from exc
-            signal = opening_signal(ds.features, targets, valid, ds.meta.train)
-            known = not math.isnan(signal)
-            used = (known and signal >= tcfg.lip_min_signal) or tcfg.lip_min_signal <= -1
-            self.mouth_doc = {"used": used, "signal": round(signal, 4) if known else None, "min_signal": tcfg.lip_min_signal}
-            if used:
-                self.mouth = torch.as_tensor(targets, device=device)
-                self.lip_pool = self.train_frames[torch.as_tensor(valid)[self.train_frames]]
-                self.mouth_probe = MouthProbe(mcfg.audio_dim).to(device)
-                self.opt_probe = torch.optim.Adam(self.mouth_probe.parameters(), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
-            else:
-                said = f"predicts the training frames' mouth opening at {signal:.2f} (cross-validated correlation)" if known else "cannot be cross-validated on so few training frames"
-                self.mouth_doc["why"] = f"the audio {said}, under lip_min_signal {tcfg.lip_min_signal:g}: the audio code learns from the photometric loss alone"
-                if self.progress:
-                    print(f"adnerf: {self.mouth_doc['why']}", file=sys.stderr)
+        plan = mouth_plan(ds, tcfg) if plan is None else plan
+        self.mouth_doc = plan.doc
+        if plan.used:
+            self.mouth = torch.as_tensor(plan.targets, device=device)
+            self.lip_pool = self.train_frames[torch.as_tensor(plan.valid)[self.train_frames]]
+            self.mouth_probe = m.mouth_probe if m.mouth_probe is not None else MouthProbe(mcfg.audio_dim).to(device)
+            self.opt_probe = torch.optim.Adam(self.mouth_probe.parameters(), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
+        elif m.reads_mouth:
+            raise RunError(f"the run's head reads the mouth, but the mouth target is not used on {ds.root} ({plan.doc['why']})")
+        elif self.progress and "signal" in plan.doc:
+            print(f"adnerf: {plan.doc['why']}", file=sys.stderr)
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.head_step = self.torso_step = 0
         self.elapsed = {"head": 0.0, "torso": 0.0}
@@ -521,9 +557,11 @@ class Trainer:
         """The audio codes ``(len(frames), audio_dim)`` of ``frames``, in one audio network pass."""
         return self.model.frame_codes(self.windows, frames)
 
-    def condition(self, frame: int, code: torch.Tensor, pose) -> FrameCondition:  # noqa: ANN001
-        """Frame ``frame``'s condition: its audio code, head pose and (when the head reads it) eye openness."""
-        return self.model.condition(code, pose, None if self.eye is None else self.eye[frame])
+    def condition(self, frame: int, code: torch.Tensor, pose, speech: int | None = None) -> FrameCondition:  # noqa: ANN001
+        """Frame ``frame``'s condition: its audio code, head pose and (when the head reads them) eye
+        openness and mouth, the mouth of frame ``speech`` when the code is another frame's."""
+        mouth = self.mouth[frame if speech is None else speech] if self.model.reads_mouth else None
+        return self.model.condition(code, pose, None if self.eye is None else self.eye[frame], mouth)
 
     def mouth_loss(self) -> "tuple[torch.Tensor, float, torch.optim.Optimizer] | None":
         """The mouth-target term of a stage-1 step, ``(loss, lip_weight, the read-out's
@@ -638,7 +676,7 @@ class Trainer:
         # clip a blink's own audio code would name its frame well enough to be learnt in place of
         # the eye condition (which held-out speech then cannot call up).
         speech = self.pick_frame()
-        return frame, pix, self.condition(frame, self.code(speech), pose)
+        return frame, pix, self.condition(frame, self.code(speech), pose, speech)
 
     def head_stage(self, max_steps: int | None) -> None:
         tcfg = self.tcfg
@@ -782,9 +820,12 @@ def train(
             raise RunError(f"{root}: a run already exists there; pass --resume to continue it or choose another folder")
         check_folder_output(root, "run", inputs=[dataset], flag=None)
         tcfg = config or TrainConfig()
-        # The head reads the eye openness when the clip blinks; else it carries nothing to learn.
-        mcfg = model_config(ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train))  # type: ignore[arg-type]
     tcfg.validate()
+    plan = mouth_plan(ds, tcfg)
+    if not resume:
+        # The head reads the eye openness when the clip blinks (else it carries nothing to learn),
+        # and the mouth when the mouth target is used and mouth_input asks for it.
+        mcfg = model_config(ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train), mouth=plan.used and tcfg.mouth_input == 1)  # type: ignore[arg-type]
     if mcfg.feature_dim != ds.meta.feature_dim:
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")
     head_done = ckpt["head_step"] if ckpt else 0
@@ -798,7 +839,7 @@ def train(
         ensure_writable(root)
         devices = ranks.gather(str(device))
         ranks.barrier()  # every process has checked the folder before process 0 writes into it
-        trainer = Trainer(root, ds, mcfg, tcfg, device, progress, ranks)
+        trainer = Trainer(root, ds, mcfg, tcfg, device, progress, ranks, plan)
         if ckpt is not None:
             trainer.load(ckpt)
         if ranks.main:

@@ -50,6 +50,10 @@ class TrainConfig:
         lip_min_signal: The mouth target is used only when the clip's audio predicts the opening
             of its training frames at least this well (cross-validated correlation,
             :func:`~adnerf.model.mouth_target.opening_signal`); -1 uses it always.
+        mouth_input: 1: where the mouth target is used, the head also reads the mouth's opening and
+            width (each training frame's own; when rendering, the read-out of the audio code), so
+            the field draws the mouth as wide as it is told (:attr:`ModelConfig.mouth_dim
+            <adnerf.model.talking_head.ModelConfig.mouth_dim>`); 0: the head reads the audio code alone.
         torso_person_rays: Fraction of each stage-2 batch drawn among the frame's torso pixels
             (the rest uniformly in the torso box, which is mostly background).
         mask_weight: Weight of the opacity loss against the parsing (stage 1: head pixels opaque,
@@ -81,6 +85,7 @@ class TrainConfig:
     lip_weight: float = 0.01
     lip_frames: int = 64
     lip_min_signal: float = 0.2
+    mouth_input: int = 0
     torso_person_rays: float = 0.5
     mask_weight: float = 0.1
     occupancy_start: float = 0.1
@@ -149,6 +154,8 @@ class TrainConfig:
             raise ValueError("mask_weight and lip_weight must be >= 0")
         if self.lip_frames < 1:
             raise ValueError(f"lip_frames must be >= 1; got {self.lip_frames}")
+        if self.mouth_input not in (0, 1):
+            raise ValueError(f"mouth_input is 0 or 1; got {self.mouth_input}")
         if not -1 <= self.lip_min_signal <= 1:
             raise ValueError(f"lip_min_signal is a correlation, in [-1, 1]; got {self.lip_min_signal}")
         if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1 and 0 <= self.eye_rays <= 1 and 0 <= self.blink_frames <= 1):
@@ -180,7 +187,7 @@ class TrainConfig:
 
 
 PRESETS = ("fast", "paper")
-LATER_KEYS: dict[str, object] = {"lip_weight": 0.0}
+LATER_KEYS: dict[str, object] = {"lip_weight": 0.0, "mouth_input": 0}
 """Keys added to the schedule after runs were written without them, with the value those runs
 trained with (they trained the audio code from the photometric loss alone)."""
 _FIELD_TYPES: dict[str, type] = {f.name: {"int": int, "float": float, "str": str}[f.type] for f in fields(TrainConfig)}  # type: ignore[index]
