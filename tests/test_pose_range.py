@@ -209,3 +209,46 @@ def test_the_sweeps_lifted_landmarks_turn_with_the_head() -> None:
     expected = np.stack([fx * moved[:, 0] / moved[:, 2] + cx, fy * moved[:, 1] / moved[:, 2] + cy], 1)
     np.testing.assert_allclose(_project(_Run, points, turned), expected, atol=1e-9)
     assert np.abs(expected - landmarks[kept]).max() > 3.0  # the turn moved them: the check above is not trivial
+
+
+def test_clamping_moves_poses_into_the_range_and_leaves_those_inside() -> None:
+    r = PoseRange.from_poses(_poses(np.linspace(-2.0, 2.0, 21)), head_width=2.0)
+    inside = _poses(np.array([-1.5, 0.3, 2.0]))
+    np.testing.assert_allclose(r.clamp(inside), inside, atol=1e-12)
+    far = _poses(np.array([9.0, -7.0]))
+    far[:, :3, 3] += [0.5, 0.0, 0.0]
+    got = r.clamp(far)
+    np.testing.assert_allclose(r.angles(got)[:, 0], [2.0, -2.0], atol=1e-9)
+    np.testing.assert_allclose(got[:, :3, 3], [[0.0, 0.1, 5.0]] * 2, atol=1e-12)
+    assert r.excess(got)[0].max() < 1e-9 and r.excess(got)[1].max() < 1e-9
+
+
+def test_the_torso_reads_the_track_not_the_edit_by_default(scene: Path, run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Under a yaw edit the head's rays move with the edited pose while the torso reads the track's
+    own pose (clamped to the range); torso_pose="edited" hands it the edited pose; the pose signal
+    a layer reads is the override's code."""
+    from adnerf.model.conditions import FrameCondition
+    from adnerf.model.pose_range import torso_reads
+
+    ds, r = load_dataset(scene), load_run(run)
+    seen: list[tuple[HeadPose, HeadPose | None]] = []
+    real = render_video.render_frame
+
+    def spy(model, camera, pose, code, plate, **kw):  # noqa: ANN001, ANN003, ANN202
+        seen.append((pose, kw.get("read_pose")))
+        return real(model, camera, pose, code, plate, **kw)
+
+    monkeypatch.setattr(render_video, "render_frame", spy)
+    idx = ds.meta.test[:1]
+    plate = ds.background.astype(np.float32) / 255.0
+    render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=15.0)
+    moved, read = seen[-1]
+    np.testing.assert_allclose(read.matrix().numpy(), r.pose_range.clamp(ds.poses[idx])[0], atol=1e-12)
+    assert r.pose_range.angles(moved.matrix()[None].numpy())[0, 0] > 10.0
+    render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=15.0, torso_pose="edited")
+    assert seen[-1][1] is None
+    with pytest.raises(ValueError, match="torso's pose"):
+        torso_reads("head", ds.poses[idx], ds.poses[idx], r.pose_range)
+    cond = FrameCondition(torch.zeros(4), moved, {"pose": read.code()})
+    torch.testing.assert_close(cond.signal("pose"), read.code())
+    assert not torch.equal(cond.signal("pose"), moved.code())

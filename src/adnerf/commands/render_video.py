@@ -30,6 +30,7 @@ from ..audio.features import (
 from ..io import AudioTrack, MediaError, read_audio, write_video
 from ..model.blinks import count_blinks, eye_track
 from ..model.data import DatasetError, SceneMeta, check_poses
+from ..model.pose_range import torso_reads
 from ..model.run_folder import Run
 from ..model.talking_head import FrameRender, render_frame
 from ..lock import writes_folder
@@ -153,6 +154,7 @@ def render_frames(
     pitch: float | np.ndarray = 0.0,
     roll: float | np.ndarray = 0.0,
     eye: np.ndarray | None = None,
+    torso_pose: str = "track",
     progress: Callable[[int, int], None] | None = None,
 ) -> RenderedClip:
     """Render one frame per feature window.
@@ -170,6 +172,8 @@ def render_frames(
             clockwise in the image.
         eye: Eye openness per frame ``(N,)`` (1 open, 0 closed) for runs whose head reads it;
             ``None``: open.
+        torso_pose: What the torso reads under an edit (:func:`~adnerf.model.pose_range.torso_reads`):
+            ``"track"`` the un-edited poses, clamped to the range the run was taught.
         progress: Called as ``progress(done, total)``.
     """
     model = run.model
@@ -185,7 +189,9 @@ def render_frames(
         raise RenderError(f"yaw, pitch and roll must be numbers or one angle per frame ({len(windows)}); got shapes {[np.shape(a) for a in (yaw, pitch, roll)]}") from None
     if not np.isfinite(angles).all():
         raise RenderError("yaw, pitch and roll must be finite degrees")
-    poses = edit_poses(_checked_poses(np.asarray(poses, dtype=np.float64), "poses"), angles)
+    track = _checked_poses(np.asarray(poses, dtype=np.float64), "poses")
+    poses = edit_poses(track, angles)
+    reads = torso_reads(torso_pose, track, poses, run.pose_range)
     if plate.shape != (meta["height"], meta["width"], 3):
         raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
     camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
@@ -200,7 +206,8 @@ def render_frames(
     torso_op = np.empty((n, H, W), dtype=np.float32)
     for i in range(n):
         pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev))
-        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, eye=None if eye is None else float(eye[i]), layers=run.trained_layers, amp=run.train_config.amp)
+        read = None if reads is None else HeadPose.from_matrix(torch.as_tensor(reads[i], dtype=torch.float64, device=dev))
+        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, eye=None if eye is None else float(eye[i]), layers=run.trained_layers, amp=run.train_config.amp, read_pose=read)
         frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
         head_op[i] = out.head_opacity.cpu().numpy()
         torso_op[i] = out.torso_opacity.cpu().numpy()

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ..model.data import LABEL_HEAD, TalkingHeadDataset
+from ..model.pose_range import torso_reads
 from ..model.run_folder import Run
 from ..model.talking_head import render_frame
 from ..pose import HeadPose
@@ -108,6 +109,7 @@ def pose_sweep(
     ds: TalkingHeadDataset,
     frames: Sequence[int],
     yaws: Sequence[float] = SWEEP_YAWS,
+    torso_pose: str = "track",
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[list[dict], np.ndarray]:
     """Render ``frames`` of ``ds`` at each yaw edit and measure them against the un-edited render.
@@ -117,6 +119,7 @@ def pose_sweep(
         ds: Its dataset (poses, audio windows, plate).
         frames: The frames to render (held-out ones: the sweep is of a run's generalisation).
         yaws: Degrees; the first should be 0 (the reference of every figure).
+        torso_pose: What the torso reads under the edit (:func:`~adnerf.model.pose_range.torso_reads`).
         progress: Called as ``progress(done, total)`` over the renders.
 
     Returns:
@@ -148,7 +151,9 @@ def pose_sweep(
         ref = None
         for y, yaw in enumerate(yaws):
             pose = base.perturbed(yaw=math.radians(yaw))
-            out = render_frame(model, camera, pose, codes[f], plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp)
+            reads = torso_reads(torso_pose, base.matrix()[None].cpu().numpy(), pose.matrix()[None].cpu().numpy(), run.pose_range)
+            read = None if reads is None else HeadPose.from_matrix(torch.as_tensor(reads[0], device=dev))
+            out = render_frame(model, camera, pose, codes[f], plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=read)
             rgb = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
             head_a, torso_a = out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
             renders[f, y] = rgb

@@ -76,7 +76,9 @@ class FrameCondition:
         pose: The frame's head pose, one ``R (3, 3)``, ``t (3,)`` (canonical to camera); per ray
             ``R (R, 3, 3)``, ``t (R, 3)``.
         extra: Further named signals, each ``(width,)`` (``"eye"``: the openness, ``(1,)``;
-            ``"mouth"``: the standardised opening and width, ``(2,)``); per ray ``(R, width)``.
+            ``"mouth"``: the standardised opening and width, ``(2,)``; ``"pose"``: the 9-d code
+            of the pose the layers read, where it differs from ``pose``, which moves the rays: a
+            render that turns the head alone); per ray ``(R, width)``.
     """
 
     audio: Tensor
@@ -128,7 +130,7 @@ class FrameCondition:
         if name == "audio":
             return self.audio
         if name == "pose":
-            return self.pose.code()
+            return self.extra["pose"] if "pose" in self.extra else self.pose.code()
         if name == "eye" and name in self.extra:
             return eye_code(self.extra[name])
         if name == "mouth" and name in self.extra:

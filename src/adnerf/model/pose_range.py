@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..pose import euler_angles, mean_rotation
+from ..pose import euler_angles, euler_rotation, mean_rotation
 
-__all__ = ["AXES", "PoseRange", "ROTATION_MARGIN_DEG", "TRANSLATION_MARGIN", "relative_angles"]
+__all__ = ["AXES", "PoseRange", "ROTATION_MARGIN_DEG", "TORSO_POSES", "TRANSLATION_MARGIN", "relative_angles", "torso_reads"]
 
 AXES = ("yaw", "pitch", "roll")
 """The rotation axes, in the order of :func:`adnerf.pose.euler_angles`."""
@@ -111,6 +111,17 @@ class PoseRange:
         trans = np.maximum(0.0, np.maximum(self.translation[:, 0] - t, t - self.translation[:, 1])) / self.head_width
         return rot, trans
 
+    def clamp(self, poses: np.ndarray) -> np.ndarray:
+        """Poses ``(N, 4, 4)`` moved into the range: yaw, pitch and roll (about :attr:`reference`)
+        and the translation clipped per axis to what the training frames showed. Poses inside it
+        are returned as they are (to rounding)."""
+        p = np.array(poses, dtype=np.float64)
+        a = np.clip(self.angles(p), self.rotation[:, 0], self.rotation[:, 1])
+        r = torch.from_numpy(np.radians(a))
+        p[:, :3, :3] = euler_rotation(r[:, 0], r[:, 1], r[:, 2], like=r).numpy() @ self.reference
+        p[:, :3, 3] = np.clip(p[:, :3, 3], self.translation[:, 0], self.translation[:, 1])
+        return p
+
     def density(self, poses: np.ndarray, within_deg: float = 1.0) -> np.ndarray:
         """How often the training frames came near each pose ``(N, 4, 4)``: per axis the share of
         training frames within ``within_deg`` of the pose's angle, read from :attr:`histogram`
@@ -187,3 +198,27 @@ class PoseRange:
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"not a stored pose range ({type(exc).__name__}: {exc})") from exc
         return out
+
+
+TORSO_POSES = ("track", "clamped", "edited")
+"""What the torso reads when the head is turned by an edit (:func:`torso_reads`)."""
+
+
+def torso_reads(mode: str, track: np.ndarray, edited: np.ndarray, taught: PoseRange | None) -> np.ndarray | None:
+    """The poses ``(N, 4, 4)`` the torso reads as its pose signal when rendering ``edited`` poses
+    made from the pose track ``track`` (``None``: the edited ones themselves).
+
+    ``"track"``: the track's own poses, clamped to the taught range (an edit turns the head alone,
+    the shoulders keep the track's motion); ``"clamped"``: the edited poses clamped to the range;
+    ``"edited"``: the edited poses (the torso extrapolates outside the range). Without a known
+    range, ``"track"`` reads the track as it is and ``"clamped"`` the edited poses.
+
+    Raises:
+        ValueError: An unknown mode.
+    """
+    if mode not in TORSO_POSES:
+        raise ValueError(f"the torso's pose is one of {TORSO_POSES}; got {mode!r}")
+    if mode == "edited" or (mode == "clamped" and taught is None):
+        return None
+    source = track if mode == "track" else edited
+    return source if taught is None else taught.clamp(source)

@@ -283,11 +283,13 @@ class TalkingHead(nn.Module):
             raise ValueError("this model's head does not read the mouth (mouth_dim 0)")
         return self.mouth_probe(codes)
 
-    def condition(self, code: Tensor, pose: HeadPose, eye: float | Tensor | None = None, mouth: Tensor | None = None) -> FrameCondition:
+    def condition(self, code: Tensor, pose: HeadPose, eye: float | Tensor | None = None, mouth: Tensor | None = None, read_pose: HeadPose | None = None) -> FrameCondition:
         """A frame's condition from its audio code ``(audio_dim,)``, head pose, eye openness (a
         number or ``(1,)``; ``None``: open, 1) and mouth (``(2,)``; ``None``: the read-out of the
-        code, :meth:`mouth_from_codes`). A signal the model does not read is left out."""
-        extra = {}
+        code, :meth:`mouth_from_codes`). A signal the model does not read is left out.
+        ``read_pose``: the pose the layers read as their pose signal (the torso's), where it
+        differs from ``pose`` (which moves the head's rays); ``None``: ``pose``."""
+        extra = {} if read_pose is None else {"pose": read_pose.code().to(code.dtype)}
         if self.reads_eye:
             extra["eye"] = torch.as_tensor(1.0 if eye is None else eye, dtype=code.dtype, device=code.device).reshape(1)
         if self.reads_mouth:
@@ -500,6 +502,7 @@ def render_frame(
     layers: Sequence[str] | None = None,
     chunk: int | None = None,
     amp: str = "auto",
+    read_pose: HeadPose | None = None,
 ) -> FrameRender:
     """Render a full frame (no gradients): the layers composited front to back over the plate.
 
@@ -514,10 +517,12 @@ def render_frame(
             picture), in the model's order.
         chunk: Rays per batch (default :func:`render_chunk` of the device).
         amp: Mixed precision of the fields (see :func:`mixed_precision`; default: bfloat16 on CUDA).
+        read_pose: The pose the layers read as a signal (the torso), where it differs from ``pose``
+            (:meth:`TalkingHead.condition`).
     """
     H, W = camera.height, camera.width
     plate_flat = plate.reshape(-1, 3).to(torch.float32)
-    drawn = _render_layers(model, camera.rays().flatten(), model.condition(code, pose, eye), layers, chunk, amp, H * W, plate_flat.device)
+    drawn = _render_layers(model, camera.rays().flatten(), model.condition(code, pose, eye, read_pose=read_pose), layers, chunk, amp, H * W, plate_flat.device)
     rgb = composite_layers([layer for layer, _ in reversed(drawn.values())], plate_flat).rgb
     return FrameRender(
         rgb=rgb.reshape(H, W, 3).clamp(0, 1),
