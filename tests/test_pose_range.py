@@ -225,8 +225,8 @@ def test_clamping_moves_poses_into_the_range_and_leaves_those_inside() -> None:
 
 def test_the_torso_reads_the_track_not_the_edit_by_default(scene: Path, run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Under a yaw edit the head's rays move with the edited pose while the torso reads the track's
-    own pose (clamped to the range); torso_pose="edited" hands it the edited pose; the pose signal
-    a layer reads is the override's code."""
+    own pose; "clamped" hands it the edited pose clamped to the range, "edited" the edited pose;
+    the pose signal a layer reads is the override's code."""
     from adnerf.model.conditions import FrameCondition
     from adnerf.model.pose_range import torso_reads
 
@@ -243,8 +243,11 @@ def test_the_torso_reads_the_track_not_the_edit_by_default(scene: Path, run: Pat
     plate = ds.background.astype(np.float32) / 255.0
     render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=15.0)
     moved, read = seen[-1]
-    np.testing.assert_allclose(read.matrix().numpy(), r.pose_range.clamp(ds.poses[idx])[0], atol=1e-12)
+    np.testing.assert_allclose(read.matrix().numpy(), ds.poses[idx][0], atol=1e-12)
     assert r.pose_range.angles(moved.matrix()[None].numpy())[0, 0] > 10.0
+    render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=15.0, torso_pose="clamped")
+    clamped = seen[-1][1].matrix()[None].numpy()
+    np.testing.assert_allclose(r.pose_range.angles(clamped)[0, 0], r.pose_range.rotation[0, 1], atol=1e-9)
     render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=15.0, torso_pose="edited")
     assert seen[-1][1] is None
     with pytest.raises(ValueError, match="torso's pose"):

@@ -173,7 +173,7 @@ def render_frames(
         eye: Eye openness per frame ``(N,)`` (1 open, 0 closed) for runs whose head reads it;
             ``None``: open.
         torso_pose: What the torso reads under an edit (:func:`~adnerf.model.pose_range.torso_reads`):
-            ``"track"`` the un-edited poses, clamped to the range the run was taught.
+            ``"track"`` the un-edited poses.
         progress: Called as ``progress(done, total)``.
     """
     model = run.model
@@ -206,7 +206,7 @@ def render_frames(
     torso_op = np.empty((n, H, W), dtype=np.float32)
     for i in range(n):
         pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev))
-        read = None if reads is None else HeadPose.from_matrix(torch.as_tensor(reads[i], dtype=torch.float64, device=dev))
+        read = None if reads is None or not angles[i].any() else HeadPose.from_matrix(torch.as_tensor(reads[i], dtype=torch.float64, device=dev))  # an un-edited frame reads its own pose
         out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, eye=None if eye is None else float(eye[i]), layers=run.trained_layers, amp=run.train_config.amp, read_pose=read)
         frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
         head_op[i] = out.head_opacity.cpu().numpy()

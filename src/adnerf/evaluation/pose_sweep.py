@@ -194,7 +194,7 @@ def pose_sweep(
 
 def sweep_sheet(path: str | Path, renders: np.ndarray, yaws: Sequence[float], labels: Sequence[str], zoom: tuple[int, int, int, int] | None = None) -> Path:
     """A contact sheet of a sweep's renders ``(F, Y, H, W, 3)``: a row per frame, a column per yaw;
-    ``zoom`` ``(x0, y0, x1, y1)`` adds, under each row, the same crop enlarged (face and neck)."""
+    ``zoom`` ``(x0, y0, x1, y1)`` adds, under each row, the same crop enlarged."""
     from ..commands.demo import contact_sheet
 
     rows = []
@@ -206,5 +206,5 @@ def sweep_sheet(path: str | Path, renders: np.ndarray, yaws: Sequence[float], la
         if zoom is not None:
             x0, y0, x1, y1 = zoom
             rows.append(np.stack([cv2.resize(img[y0:y1, x0:x1], (w, h), interpolation=cv2.INTER_LINEAR) for img in renders[f]]))
-            row_labels.append(f"{label}, face and neck")
+            row_labels.append(f"{label}, enlarged")
     return contact_sheet(Path(path), rows, [f"yaw {y:+g} deg" for y in yaws], row_labels)

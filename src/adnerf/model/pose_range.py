@@ -29,10 +29,9 @@ AXES = ("yaw", "pitch", "roll")
 """The rotation axes, in the order of :func:`adnerf.pose.euler_angles`."""
 
 ROTATION_MARGIN_DEG = 5.0
-"""Degrees a pose may leave the taught rotation range before rendering warns. On the 50 s real clip
-(taught yaw -4.9 to +3.8 degrees) the landmark geometry of edited held-out renders stays within
-about a pixel of a rigid turn up to 5 degrees past the range, and the face softens beyond
-(``docs/decisions.md``, *The taught pose range and its margin*)."""
+"""Degrees a pose may leave the taught rotation range before rendering warns: up to about there a
+turned face is still a rigid turn of itself (``docs/decisions.md``, *The taught pose range, its
+5-degree margin, and the torso under an edit*)."""
 
 TRANSLATION_MARGIN = 0.1
 """Head widths (the head box's extent along x) a pose's translation may leave the taught range."""
@@ -208,10 +207,10 @@ def torso_reads(mode: str, track: np.ndarray, edited: np.ndarray, taught: PoseRa
     """The poses ``(N, 4, 4)`` the torso reads as its pose signal when rendering ``edited`` poses
     made from the pose track ``track`` (``None``: the edited ones themselves).
 
-    ``"track"``: the track's own poses, clamped to the taught range (an edit turns the head alone,
-    the shoulders keep the track's motion); ``"clamped"``: the edited poses clamped to the range;
-    ``"edited"``: the edited poses (the torso extrapolates outside the range). Without a known
-    range, ``"track"`` reads the track as it is and ``"clamped"`` the edited poses.
+    ``"track"``: the track's own poses (an edit turns the head alone, the shoulders keep the
+    track's motion; without an edit, the frames render exactly as before); ``"clamped"``: the
+    edited poses clamped to the range; ``"edited"``: the edited poses (the torso extrapolates
+    outside the range). Without a known range, ``"clamped"`` reads the edited poses.
 
     Raises:
         ValueError: An unknown mode.
@@ -220,5 +219,6 @@ def torso_reads(mode: str, track: np.ndarray, edited: np.ndarray, taught: PoseRa
         raise ValueError(f"the torso's pose is one of {TORSO_POSES}; got {mode!r}")
     if mode == "edited" or (mode == "clamped" and taught is None):
         return None
-    source = track if mode == "track" else edited
-    return source if taught is None else taught.clamp(source)
+    if mode == "track":
+        return track
+    return edited if taught is None else taught.clamp(edited)

@@ -51,9 +51,10 @@ class TrainConfig:
             of its training frames at least this well (cross-validated correlation,
             :func:`~adnerf.model.mouth_target.opening_signal`); -1 uses it always.
         mouth_input: 1: where the mouth target is used, the head also reads the mouth's opening and
-            width (each training frame's own; when rendering, the read-out of the audio code), so
-            the field draws the mouth as wide as it is told (:attr:`ModelConfig.mouth_dim
-            <adnerf.model.talking_head.ModelConfig.mouth_dim>`); 0: the head reads the audio code alone.
+            width (each training frame's own; when rendering, the read-out of the audio code;
+            :attr:`ModelConfig.mouth_dim <adnerf.model.talking_head.ModelConfig.mouth_dim>`); 0 (the
+            default: ``docs/decisions.md``, *The head does not read the mouth by default*): the head
+            reads the audio code alone.
         torso_person_rays: Fraction of each stage-2 batch drawn among the frame's torso pixels
             (the rest uniformly in the torso box, which is mostly background).
         mask_weight: Weight of the opacity loss against the parsing (stage 1: head pixels opaque,
