@@ -166,7 +166,7 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     torch.manual_seed(0)
     syncnet_path = tmp_path / "syncnet.model"
     torch.save(SyncNet(64).state_dict(), syncnet_path)  # random weights: the plumbing, not the score
-    row = bench_real(clip, size=None, minutes=0.05, work=tmp_path / "work", lpips_backbone=backbone_path, lpips_linear=linear_path, syncnet=syncnet_path, progress=False, log=lambda m: None)
+    row = bench_real(clip, size=None, minutes=0.05, work=tmp_path / "work", lpips_backbone=backbone_path, lpips_linear=linear_path, syncnet=syncnet_path, sweep=2, progress=False, log=lambda m: None)
     json.dumps(row)  # serialisable as it is
     for key in ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "lpips"):
         assert isinstance(row[key], (int, float)) and math.isfinite(row[key]), key
@@ -180,13 +180,17 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     assert row["layers"]["lip_in_head"] >= 0.98 and Path(row["sheet"]).stat().st_size > 0
     lips = row["lip_signal"]  # the clip's own ceiling, from the dataset's landmarks and audio
     assert lips["frames"] == 75 and len(lips["ridge_cv_blocks"]) == 6 and -1 <= lips["ridge_cv_corr"] <= 1
-    assert set(row["seconds"]) == {"video", "preprocess", "train_wall", "evaluate", "sheet"}
+    assert set(row["seconds"]) == {"video", "preprocess", "train_wall", "evaluate", "sheet", "sweep"}
+    # The pose sweep: two held-out frames at each yaw, the first and the last, with its sheet.
+    sweep = row["pose_sweep"]
+    assert [r["yaw"] for r in sweep["rows"]] == [0.0, 5.0, 10.0, 15.0, 20.0] and sweep["frames"] == [64, 74]
+    assert Path(sweep["sheet"]).stat().st_size > 0 and set(row["pose_range"]) == {"yaw", "pitch", "roll"}
     plot_mouth_opening(row, tmp_path / "mouth.png")
     assert (tmp_path / "mouth.png").stat().st_size > 0
     # Again: the dataset and the run are reused, and without LPIPS weights the column says so.
     capsys.readouterr()
     drive = clip.parent / "audio.wav"
-    argv = ["bench", "real", str(clip), "--size", "0", "--minutes", "0.05", "--work", str(tmp_path / "work"), "--json", "--lpips-backbone", str(tmp_path / "none.pth")]
+    argv = ["bench", "real", str(clip), "--size", "0", "--minutes", "0.05", "--work", str(tmp_path / "work"), "--json", "--lpips-backbone", str(tmp_path / "none.pth"), "--sweep", "0"]
     assert main([*argv, "--drive", str(drive), "--syncnet", str(syncnet_path)]) == 0
     again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert again["lpips"] == "no weights" and again["syncnet"] == "scored" and again["seconds"]["preprocess"] < 1.0

@@ -116,7 +116,7 @@ def _sweep(run, ds, sheet: Path, count: int, log: Callable[[str], None]) -> dict
     rows, renders = pose_sweep(run, ds, frames)
     shown = np.linspace(0, len(frames) - 1, min(3, len(frames))).round().astype(int)
     h, w = ds.meta.height, ds.meta.width
-    zoom = (w // 4, h // 4, 3 * w // 4, 3 * h // 4) if h >= 64 else None  # the lower face, the neck and the collar
+    zoom = (w // 4, 3 * h // 8, 3 * w // 4, 7 * h // 8) if h >= 64 else None  # in a head-and-shoulders framing: the mouth, the chin, the neck and the collar
     sweep_sheet(sheet, renders[shown], SWEEP_YAWS, [f"frame {frames[k]}" for k in shown], zoom=zoom)
     return {"frames": frames, "rows": rows, "sheet": str(sheet), "seconds": time.perf_counter() - t0}
 
