@@ -183,12 +183,12 @@ def test_the_sweeps_lifted_landmarks_turn_with_the_head() -> None:
     pixels."""
     from adnerf.evaluation.pose_sweep import _FACE, _lifted, _project
 
-    class _Run:
-        meta = {"intrinsics": (120.0, 120.0, 32.0, 32.0)}
+    from adnerf.cameras import Camera, intrinsics_matrix
 
     h = w = 64
+    camera = Camera(intrinsics_matrix(120.0, 120.0, 32.0, 32.0), h, w)
     pose = HeadPose(euler_rotation(0.1, -0.05, 0.02, like=torch.zeros((), dtype=torch.float64)), torch.tensor([0.05, -0.02, 4.0], dtype=torch.float64))
-    fx, fy, cx, cy = _Run.meta["intrinsics"]
+    fx, fy, cx, cy = 120.0, 120.0, 32.0, 32.0
     jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     d = np.stack([(jj - cx) / fx, (ii - cy) / fy, np.ones_like(jj)], -1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
@@ -200,14 +200,14 @@ def test_the_sweeps_lifted_landmarks_turn_with_the_head() -> None:
     landmarks = np.zeros((68, 2))
     rng = np.random.default_rng(0)
     landmarks[_FACE] = rng.integers(24, 40, size=(len(_FACE), 2)) + 0.5  # pixel centres on the sphere's face
-    points, kept = _lifted(_Run, landmarks, depth, opacity, pose)
+    points, kept = _lifted(camera, landmarks, depth, opacity, pose)
     assert len(kept) == len(_FACE)
-    np.testing.assert_allclose(_project(_Run, points, pose), landmarks[kept], atol=1e-9)
+    np.testing.assert_allclose(_project(camera, points, pose), landmarks[kept], atol=1e-9)
     turned = pose.perturbed(yaw=math.radians(12.0))
     cam = depth[landmarks[kept, 1].astype(int), landmarks[kept, 0].astype(int), None] * d[landmarks[kept, 1].astype(int), landmarks[kept, 0].astype(int)]
     moved = ((turned.R @ pose.R.T @ (torch.as_tensor(cam) - pose.t).T).T + turned.t).numpy()
     expected = np.stack([fx * moved[:, 0] / moved[:, 2] + cx, fy * moved[:, 1] / moved[:, 2] + cy], 1)
-    np.testing.assert_allclose(_project(_Run, points, turned), expected, atol=1e-9)
+    np.testing.assert_allclose(_project(camera, points, turned), expected, atol=1e-9)
     assert np.abs(expected - landmarks[kept]).max() > 3.0  # the turn moved them: the check above is not trivial
 
 
@@ -255,3 +255,12 @@ def test_the_torso_reads_the_track_not_the_edit_by_default(scene: Path, run: Pat
     cond = FrameCondition(torch.zeros(4), moved, {"pose": read.code()})
     torch.testing.assert_close(cond.signal("pose"), read.code())
     assert not torch.equal(cond.signal("pose"), moved.code())
+
+
+def test_density_says_how_often_the_training_frames_came_near_a_pose() -> None:
+    """Yaws of 20 frames at -1.9..-1.1 degrees and 20 at +1.1..+1.9 (mean 0): half the frames lie
+    within half a degree of -1.5 and of +1.5, none near -0.3 or +9 (bins a degree off, or a
+    histogram read from the wrong end, give other shares)."""
+    yaws = np.concatenate([np.linspace(-1.9, -1.1, 20), np.linspace(1.1, 1.9, 20)])
+    r = PoseRange.from_poses(_poses(yaws), head_width=2.0)
+    np.testing.assert_allclose(r.density(_poses(np.array([-1.5, 1.5, -0.3, 9.0])), within_deg=0.5), [0.5, 0.5, 0.0, 0.0], atol=1e-12)

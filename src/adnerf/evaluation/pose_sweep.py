@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 import torch
 
+from ..cameras import Camera
 from ..model.data import LABEL_HEAD, TalkingHeadDataset
 from ..model.pose_range import torso_reads
 from ..model.run_folder import Run
@@ -54,29 +55,22 @@ def _landmarks(image: np.ndarray, head_opacity: np.ndarray) -> np.ndarray | None
     return track.landmarks[0] if track.detected[0] else None
 
 
-def _lifted(run: Run, landmarks: np.ndarray, depth: np.ndarray, opacity: np.ndarray, pose: HeadPose) -> tuple[np.ndarray, np.ndarray]:
+def _lifted(camera: Camera, landmarks: np.ndarray, depth: np.ndarray, opacity: np.ndarray, pose: HeadPose) -> tuple[np.ndarray, np.ndarray]:
     """The face landmarks as canonical points ``(K, 3)`` (with the indices ``(K,)`` kept: those on
     the opaque head), from their pixels and the head layer's depth along the unit pixel ray."""
-    meta = run.meta
-    fx, fy, cx, cy = meta["intrinsics"]
     h, w = depth.shape
-    pts, kept = [], []
-    for k in _FACE:
-        u, v = landmarks[k]
-        i, j = int(math.floor(v)), int(math.floor(u))
-        if not (0 <= i < h and 0 <= j < w) or opacity[i, j] < 0.5:
-            continue
-        d = np.array([(u - cx) / fx, (v - cy) / fy, 1.0])
-        pts.append(depth[i, j] * d / np.linalg.norm(d))
-        kept.append(k)
-    cam = torch.as_tensor(np.asarray(pts, dtype=np.float64).reshape(-1, 3))
-    return pose.to_canonical(cam).numpy(), np.asarray(kept, dtype=np.int64)
+    pix = np.floor(landmarks[_FACE]).astype(np.int64)  # (column, row) of each landmark's pixel
+    on = (pix[:, 0] >= 0) & (pix[:, 0] < w) & (pix[:, 1] >= 0) & (pix[:, 1] < h)
+    on[on] = opacity[pix[on, 1], pix[on, 0]] >= 0.5
+    kept, pix = _FACE[on], pix[on]
+    rays = camera.rays_at(torch.as_tensor(landmarks[kept], dtype=torch.float64))
+    cam = rays.origins + torch.as_tensor(depth[pix[:, 1], pix[:, 0]], dtype=torch.float64)[:, None] * rays.directions
+    return pose.to_canonical(cam).numpy(), kept
 
 
-def _project(run: Run, points: np.ndarray, pose: HeadPose) -> np.ndarray:
-    fx, fy, cx, cy = run.meta["intrinsics"]
-    cam = pose.from_canonical(torch.as_tensor(points)).numpy()
-    return np.stack([fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy], axis=1)
+def _project(camera: Camera, points: np.ndarray, pose: HeadPose) -> np.ndarray:
+    """Pixels ``(K, 2)`` of canonical points ``(K, 3)`` under ``pose``."""
+    return camera.project(pose.from_canonical(torch.as_tensor(points))).numpy()
 
 
 def _box(points: np.ndarray, h: int, w: int, grow: float = 0.15) -> tuple[int, int, int, int]:
@@ -162,12 +156,12 @@ def pose_sweep(
                 if lm is None:  # nothing to compare this frame's edits with
                     done += len(yaws)
                     break
-                points, kept = _lifted(run, lm, out.depth["head"].cpu().numpy(), head_a, pose)
+                points, kept = _lifted(camera, lm, out.depth["head"].cpu().numpy(), head_a, pose)
                 ref = (lm, points, kept, _box(lm[_FACE], h, w), rgb, head_a, torso_a)
             lm0, points, kept, box, rgb0, head0, torso0 = ref
             if lm is not None:
                 found[y] += 1
-                per["identity_px"][y].append(float(np.linalg.norm(_project(run, points, pose) - lm[kept], axis=1).mean()))
+                per["identity_px"][y].append(float(np.linalg.norm(_project(camera, points, pose) - lm[kept], axis=1).mean()))
                 per["sharpness"][y].append(_sharpness(rgb, _box(lm[_FACE], h, w)) / max(_sharpness(rgb0, box), 1e-12))
                 x0, y0, x1, y1 = _neck_band(lm, h, w)
                 person = 1.0 - (1.0 - head_a[y0:y1, x0:x1]) * (1.0 - torso_a[y0:y1, x0:x1])
