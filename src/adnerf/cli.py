@@ -200,6 +200,17 @@ def _cmd_bench_real(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_scale(args: argparse.Namespace) -> int:
+    from .bench.scale import bench_scale, format_scale_table
+
+    try:
+        result = bench_scale(args.video, seconds=args.seconds, size=args.size or None, steps=args.steps, device=_device(args.device), work=args.work, log=_log)
+    except (ValueError, RuntimeError) as exc:
+        raise CliError(str(exc)) from exc
+    _emit([result], format_scale_table(result), args.json)
+    return 0
+
+
 def _cmd_bench_voices(args: argparse.Namespace) -> int:
     from .bench.voices import bench_voices, format_voices_table
 
@@ -630,6 +641,15 @@ def build_parser() -> argparse.ArgumentParser:
     real.add_argument("--plot", default=None, help="write a PNG of the true and rendered mouth opening over the held-out frames")
     real.add_argument("--json", action="store_true", help="one JSON line on stdout, the table on stderr")
     real.set_defaults(func=_cmd_bench_real)
+    scale = bench_sub.add_parser("scale", help="a clip looped or cut to several lengths: preprocessing time per step and per frame, training speed and peak memory of each")
+    scale.add_argument("video", help="the clip (one person, static camera, with audio)")
+    scale.add_argument("--seconds", type=_positive_float_list, default=(10.0, 50.0, 300.0), help="comma-separated clip lengths in seconds, each made from the clip by looping it (frames and audio) or cutting it")
+    scale.add_argument("--size", type=_number(int, 0, 2048), default=512, help="longer side in pixels the clip is resized to first, 0 to keep it")
+    scale.add_argument("--steps", type=_number(int, 1), default=40, help="head iterations of each timed training run (the torso gets half)")
+    scale.add_argument("--device", default="cpu", help="cpu or cuda (training)")
+    scale.add_argument("--work", default="adnerf_bench_scale", help="folder for the clips, datasets, runs and logs")
+    scale.add_argument("--json", action="store_true", help="one JSON line on stdout, the table on stderr")
+    scale.set_defaults(func=_cmd_bench_scale)
     voices = bench_sub.add_parser("voices", help="train on one espeak-ng voice, drive with others: how the rendered mouth follows the viseme truth, per feature kind")
     voices.add_argument("--kinds", nargs="+", choices=("logmel", "phonemes"), default=["logmel", "phonemes"], help="feature kinds to compare (one scene and run each)")
     voices.add_argument("--seconds", type=_number(float, 5.0, 600.0), default=30.0, help="length of the training scene, 5 to 600 s")

@@ -5,9 +5,10 @@
   optionally its audio track (mono float32, resampled on request). A file cut off mid-write
   gives the frames that decode and says where it ends.
 * :func:`read_audio` decodes the audio of any file FFmpeg reads (wav, mp3, m4a, flac, mp4, ...).
-* :func:`write_video` encodes frames (h264) and an optional audio track (aac) into an mp4 with
-  audio sample 0 at the time of frame 0; it writes to a temporary file and renames it into
-  place, so a failure leaves nothing partial.
+* :class:`VideoWriter` encodes frames one at a time (h264) and an optional audio track (aac) into
+  an mp4 with audio sample 0 at the time of frame 0, holding one frame in memory; it writes to a
+  temporary file and renames it into place, so a failure leaves nothing partial.
+  :func:`write_video` hands it an array of frames.
 
 Timing convention: all times are seconds on the container's clock. Audio is returned together
 with ``audio_start``, the time of its first sample; the AAC encoder's priming delay is removed
@@ -19,6 +20,8 @@ Every failure raises :class:`MediaError` naming the file and the problem.
 
 from __future__ import annotations
 
+import sys
+from contextlib import ExitStack
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -28,7 +31,7 @@ import numpy as np
 from .atomic import atomic_path
 from .memory import require
 
-__all__ = ["AudioTrack", "MediaError", "Video", "frame_times", "probe", "read_audio", "read_video", "write_video"]
+__all__ = ["AudioTrack", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "read_audio", "read_video", "write_video"]
 
 
 class MediaError(RuntimeError):
@@ -293,6 +296,127 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
     )
 
 
+class VideoWriter:
+    """An mp4 (h264 yuv420p + aac mono) written frame by frame: memory holds one frame, not the clip.
+
+    Use as a context manager::
+
+        with VideoWriter("out.mp4", 25.0, audio=track) as writer:
+            for frame in frames:
+                writer.write(frame)
+
+    The audio is written when the block ends, with sample 0 at the time of frame 0. The file is
+    written to a temporary sibling and renamed into place only when the block ends without an
+    error, so a failure or an interrupt leaves nothing partial. Frames with odd width or height
+    are padded by one replicated row / column (h264's 4:2:0 needs even sizes); every frame must
+    have the first one's size.
+
+    Args:
+        path: Output ``.mp4`` path.
+        fps: Frame rate (may be fractional, e.g. 29.97).
+        audio: Mono samples ``(n,)`` (float in ``[-1, 1]``) or an :class:`AudioTrack`; ``None``
+            writes a silent video.
+        sample_rate: Rate of ``audio`` when it is an array.
+        crf: h264 quality (lower is better; 18 is visually lossless).
+
+    Raises:
+        MediaError: Invalid frames or audio, or the encoder failed.
+    """
+
+    def __init__(self, path: str | Path, fps: float, audio: AudioTrack | np.ndarray | None = None, sample_rate: int | None = None, *, crf: int = 18) -> None:
+        self.path = Path(path)
+        if not fps or fps <= 0:
+            raise MediaError(f"{self.path}: fps must be positive; got {fps}")
+        if isinstance(audio, AudioTrack):
+            sample_rate, audio = audio.sample_rate, audio.samples
+        if audio is not None:
+            audio = np.asarray(audio, dtype=np.float32).reshape(-1)
+            if not sample_rate or sample_rate <= 0:
+                raise MediaError(f"{self.path}: audio given without a positive sample_rate")
+        self.audio, self.sample_rate, self.crf = audio, sample_rate, crf
+        self.rate = Fraction(fps).limit_denominator(1001)
+        self.frames_written = 0
+        self._stack: ExitStack | None = None
+        self._container = self._video = self._audio_stream = None
+        self._size: tuple[int, int] | None = None
+
+    def __enter__(self) -> "VideoWriter":
+        stack = ExitStack()
+        try:
+            tmp = stack.enter_context(atomic_path(self.path))
+            self._container = stack.enter_context(_av().open(str(tmp), "w", format="mp4"))
+        except Exception as exc:
+            stack.close()
+            if isinstance(exc, OSError):
+                raise
+            raise MediaError(f"{self.path}: cannot create the video ({exc})") from exc
+        self._stack = stack
+        return self
+
+    def write(self, frame: np.ndarray) -> None:
+        """Encode one uint8 RGB frame ``(H, W, 3)`` (or float in ``[0, 1]``, converted)."""
+        if self._container is None:
+            raise MediaError(f"{self.path}: write() outside the writer's with-block")
+        img = np.asarray(frame)
+        if img.ndim != 3 or img.shape[-1] != 3 or img.shape[0] == 0 or img.shape[1] == 0:
+            raise MediaError(f"{self.path}: a frame must have shape (H, W, 3); got {img.shape}")
+        if img.dtype != np.uint8:
+            img = (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        if img.shape[0] % 2 or img.shape[1] % 2:
+            img = np.pad(img, ((0, img.shape[0] % 2), (0, img.shape[1] % 2), (0, 0)), mode="edge")
+        try:
+            if self._video is None:
+                self._size = img.shape[:2]
+                self._video = self._container.add_stream("libx264", rate=self.rate)
+                self._video.width, self._video.height = img.shape[1], img.shape[0]
+                self._video.pix_fmt = "yuv420p"
+                self._video.options = {"crf": str(self.crf)}
+                if self.audio is not None:  # every stream is added before the first frame is muxed
+                    self._audio_stream = self._container.add_stream("aac", rate=int(self.sample_rate))
+                    self._audio_stream.layout = "mono"
+            elif img.shape[:2] != self._size:
+                raise MediaError(f"{self.path}: frame {self.frames_written} is {img.shape[1]}x{img.shape[0]}, the first was {self._size[1]}x{self._size[0]}")
+            vf = _av().VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+            vf.pts = self.frames_written
+            vf.time_base = Fraction(1, 1) / self.rate
+            self._container.mux(self._video.encode(vf))
+        except MediaError:
+            raise
+        except Exception as exc:
+            raise MediaError(f"{self.path}: writing the video failed ({exc})") from exc
+        self.frames_written += 1
+
+    def _finish(self) -> None:
+        if self._video is None:
+            raise MediaError(f"{self.path}: no frames were written")
+        try:
+            self._container.mux(self._video.encode())
+            if self._audio_stream is not None:
+                block = 1024
+                for s in range(0, len(self.audio), block):
+                    af = _av().AudioFrame.from_ndarray(np.ascontiguousarray(self.audio[None, s : s + block]), format="flt", layout="mono")
+                    af.sample_rate = int(self.sample_rate)
+                    af.pts = s
+                    af.time_base = Fraction(1, int(self.sample_rate))
+                    self._container.mux(self._audio_stream.encode(af))
+                self._container.mux(self._audio_stream.encode())
+        except Exception as exc:
+            raise MediaError(f"{self.path}: writing the video failed ({exc})") from exc
+
+    def __exit__(self, kind, exc, tb) -> bool:  # noqa: ANN001
+        stack, self._stack = self._stack, None
+        try:
+            if kind is None:
+                self._finish()
+        except BaseException:
+            stack.__exit__(*sys.exc_info())  # the container closed, the temporary file removed
+            raise
+        finally:
+            self._container = self._video = self._audio_stream = None
+        stack.__exit__(kind, exc, tb)  # on success: the trailer written, the file renamed into place
+        return False
+
+
 def write_video(
     path: str | Path,
     frames: np.ndarray,
@@ -304,8 +428,8 @@ def write_video(
 ) -> Path:
     """Encode an mp4 (h264 yuv420p + aac mono) with audio aligned to the first frame.
 
-    Frames with odd width or height are padded by one replicated row / column (h264's 4:2:0
-    needs even sizes). Audio sample 0 plays at the time of frame 0.
+    The frames are handed to a :class:`VideoWriter` one by one (which see: odd sizes are padded,
+    the file appears only when complete).
 
     Args:
         path: Output ``.mp4`` path; written to a temporary file first, then renamed.
@@ -322,51 +446,11 @@ def write_video(
     Raises:
         MediaError: Invalid frames or audio, or the encoder failed.
     """
-    av = _av()
     out = Path(path)
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] == 0:
         raise MediaError(f"{out}: frames must have shape (N, H, W, 3) with N >= 1; got {frames.shape}")
-    if frames.dtype != np.uint8:
-        frames = (np.clip(frames, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    if frames.shape[1] % 2 or frames.shape[2] % 2:
-        frames = np.pad(frames, ((0, 0), (0, frames.shape[1] % 2), (0, frames.shape[2] % 2), (0, 0)), mode="edge")
-    if not fps or fps <= 0:
-        raise MediaError(f"{out}: fps must be positive; got {fps}")
-    if isinstance(audio, AudioTrack):
-        sample_rate, audio = audio.sample_rate, audio.samples
-    if audio is not None:
-        audio = np.asarray(audio, dtype=np.float32).reshape(-1)
-        if not sample_rate or sample_rate <= 0:
-            raise MediaError(f"{out}: audio given without a positive sample_rate")
-    rate = Fraction(fps).limit_denominator(1001)
-    try:
-        with atomic_path(out) as tmp, av.open(str(tmp), "w", format="mp4") as container:
-            v = container.add_stream("libx264", rate=rate)
-            v.width, v.height = frames.shape[2], frames.shape[1]
-            v.pix_fmt = "yuv420p"
-            v.options = {"crf": str(crf)}
-            a = None
-            if audio is not None:
-                a = container.add_stream("aac", rate=int(sample_rate))
-                a.layout = "mono"
-            for i, img in enumerate(frames):
-                vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
-                vf.pts = i
-                vf.time_base = Fraction(1, 1) / rate
-                container.mux(v.encode(vf))
-            container.mux(v.encode())
-            if a is not None:
-                block = 1024
-                for s in range(0, len(audio), block):
-                    af = av.AudioFrame.from_ndarray(np.ascontiguousarray(audio[None, s : s + block]), format="flt", layout="mono")
-                    af.sample_rate = int(sample_rate)
-                    af.pts = s
-                    af.time_base = Fraction(1, int(sample_rate))
-                    container.mux(a.encode(af))
-                container.mux(a.encode())
-    except MediaError:
-        raise
-    except Exception as exc:
-        raise MediaError(f"{out}: writing the video failed ({exc})") from exc
+    with VideoWriter(out, fps, audio, sample_rate, crf=crf) as writer:
+        for img in frames:
+            writer.write(img)
     return out
