@@ -639,3 +639,58 @@ def test_torso_check_measures_the_bottom_edge_under_the_face() -> None:
     lm2[2, 8, 1] = 97.0  # 3 px above the bottom: less than a quarter of a face width
     assert torso_check(labels2, lm2) == {"person_at_bottom": 0.5, "person_at_bottom_worst": 0.5, "frames": 1}
     assert torso_check(labels2[1:], lm2[1:]) == {"person_at_bottom": None, "person_at_bottom_worst": None, "frames": 0}
+
+
+def test_the_parse_is_the_same_on_one_thread_and_on_several() -> None:
+    """GrabCut with frozen colour models cuts each frame on its own, so frames cut side by side in
+    threads give exactly the labels of a plain loop (the models are not shared state)."""
+    import torch
+
+    from adnerf.preprocess.parsing import ClassicalParser
+
+    frames, _ = _close_crop_clip(n=24)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        serial = ClassicalParser().parse(frames)
+        torch.set_num_threads(3)
+        threaded = ClassicalParser().parse(frames)
+    finally:
+        torch.set_num_threads(before)
+    assert (serial > 0).mean() > 0.3
+    np.testing.assert_array_equal(serial, threaded)
+
+
+def test_in_threads_keeps_order_bounds_what_waits_and_raises_in_turn() -> None:
+    import threading
+    import time
+
+    from adnerf.threads import in_threads
+
+    names: set[str] = set()
+    started: list[int] = []
+
+    def work(i: int) -> int:
+        started.append(i)
+        names.add(threading.current_thread().name)
+        time.sleep(0.002 * ((7 * i) % 5))  # later items may finish first
+        return i * i
+
+    results = []
+    for r in in_threads(work, range(40), workers=3):
+        results.append(r)
+        assert len(started) <= len(results) + 6  # at most 2 x workers wait to be taken
+    assert results == [i * i for i in range(40)]
+    assert any(n.startswith("adnerf") for n in names)
+    assert list(in_threads(work, range(5), workers=1)) == [0, 1, 4, 9, 16]
+
+    def fails_at_3(i: int) -> int:
+        if i == 3:
+            raise KeyError(i)
+        return i
+
+    got = []
+    with pytest.raises(KeyError):
+        for r in in_threads(fails_at_3, range(10), workers=2):
+            got.append(r)
+    assert got == [0, 1, 2]

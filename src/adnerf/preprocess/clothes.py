@@ -144,7 +144,7 @@ def complete_torso(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray
         anchor[top:] |= m == STRIP
         anchors.append(anchor)
         m[m == STRIP] = cv2.GC_FGD
-    person = grabcut_clip(frames[valid, top:], seeds, fit, progress)
+    person = grabcut_clip(frames[valid, top:], seeds.__getitem__, fit, progress)
     added = []
     for k, i in enumerate(valid):
         cut = np.zeros((h, w), bool)

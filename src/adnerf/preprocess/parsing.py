@@ -21,6 +21,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 
 from ..model.data import LABEL_HEAD, LABEL_TORSO
+from ..threads import in_threads
 
 __all__ = ["Parser", "ClassicalParser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "torso_check", "person_hull", "grabcut_clip", "face_widths", "JAW_MARGIN", "SHOULDERS_BELOW_CHIN", "SHOULDER_HALF_WIDTH"]
 
@@ -373,23 +374,24 @@ class ClassicalParser:
         moving = self.moving_pixels(frames[stat])
         hull = person_hull(moving, self.hull_margin)
         total = 2 * n
-        person = grabcut_clip(frames, [self._first_seeds(hull, moving)] * n, stat, progress, 0, total)
-        plate, seen = self._plate(frames, person)
+        first = self._first_seeds(hull, moving)
+        first_pass = grabcut_clip(frames, lambda i: first, stat, progress, 0, total)
+        plate, seen = self._plate(frames, first_pass)
         plate_lab = _lab(plate[None])[0]
-        seeds = []
-        for i in range(n):
+
+        def seeds(i: int) -> np.ndarray:  # made when its frame is cut, not held for the clip
             d = np.linalg.norm(_lab(frames[i][None])[0] - plate_lab, axis=-1)
-            m = np.where(person[i], cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+            m = np.where(first_pass[i], cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
             m[seen & (d > self.plate_high)] = cv2.GC_FGD
             m[seen & (d < self.plate_low) & ~hull] = cv2.GC_BGD
             m[seen & (d < self.plate_low) & hull] = cv2.GC_PR_BGD
             m[~hull] = np.where(m[~hull] == cv2.GC_FGD, cv2.GC_PR_FGD, cv2.GC_BGD)
-            seeds.append(m)
+            return m
+
         person = grabcut_clip(frames, seeds, stat, progress, n, total)
         labels = np.empty((n, h, w), np.uint8)
-        for i in range(n):
-            sil = _fill_holes(_largest_component(person[i]))
-            labels[i], _ = split_head_torso(sil)
+        for i, label in enumerate(in_threads(lambda i: split_head_torso(_fill_holes(_largest_component(person[i])))[0], range(n))):
+            labels[i] = label
         return labels
 
     def moving_pixels(self, frames: np.ndarray) -> np.ndarray:
@@ -426,7 +428,7 @@ class ClassicalParser:
         return plate, count > 0
 
 
-def grabcut_clip(frames: np.ndarray, seeds: list[np.ndarray], stat: np.ndarray, progress: Progress | None = None, done: int = 0, total: int | None = None) -> np.ndarray:
+def grabcut_clip(frames: np.ndarray, seeds: Callable[[int], np.ndarray], stat: np.ndarray, progress: Progress | None = None, done: int = 0, total: int | None = None) -> np.ndarray:
     """GrabCut every frame of a clip with colour models fitted once and then frozen.
 
     The two colour models (5-component GMMs) are fitted on up to four of the ``stat`` frames side
@@ -435,8 +437,9 @@ def grabcut_clip(frames: np.ndarray, seeds: list[np.ndarray], stat: np.ndarray, 
 
     Args:
         frames: ``(N, H, W, 3)`` uint8 RGB.
-        seeds: ``N`` masks ``(H, W)`` uint8 of OpenCV's GrabCut classes (``GC_BGD``, ``GC_FGD``,
-            ``GC_PR_BGD``, ``GC_PR_FGD``).
+        seeds: Frame index -> its seed mask ``(H, W)`` uint8 of OpenCV's GrabCut classes
+            (``GC_BGD``, ``GC_FGD``, ``GC_PR_BGD``, ``GC_PR_FGD``); called once a frame (in worker
+            threads, :func:`adnerf.threads.in_threads`), so a clip's seeds need not be held.
         stat: Indices of the frames the fit may draw from.
         progress: Called with ``(done + i + 1, total)`` after frame ``i``.
         done: Offset of the progress count.
@@ -451,16 +454,20 @@ def grabcut_clip(frames: np.ndarray, seeds: list[np.ndarray], stat: np.ndarray, 
     fgd = np.zeros((1, 65), np.float64)
     fit = stat[np.linspace(0, len(stat) - 1, min(4, len(stat))).round().astype(int)]
     strip = np.concatenate([cv2.cvtColor(frames[i], cv2.COLOR_RGB2BGR) for i in fit], 1)
-    strip_mask = np.concatenate([seeds[i] for i in fit], 1).copy()
+    strip_mask = np.concatenate([seeds(i) for i in fit], 1)
     if not _has_both(strip_mask):
-        return np.isin(np.stack(seeds), (cv2.GC_FGD, cv2.GC_PR_FGD))
+        return np.stack([np.isin(seeds(i), (cv2.GC_FGD, cv2.GC_PR_FGD)) for i in range(len(frames))])
     cv2.grabCut(strip, strip_mask, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
-    out = np.empty((len(frames),) + frames.shape[1:3], bool)
-    for i, frame in enumerate(frames):
-        m = seeds[i].copy()
+
+    def cut(i: int) -> np.ndarray:  # the models are frozen: each frame's cut is its own, in any order
+        m = seeds(i).copy()
         if _has_both(m):
-            cv2.grabCut(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), m, None, bgd, fgd, 1, cv2.GC_EVAL_FREEZE_MODEL)
-        out[i] = np.isin(m, (cv2.GC_FGD, cv2.GC_PR_FGD))
+            cv2.grabCut(cv2.cvtColor(frames[i], cv2.COLOR_RGB2BGR), m, None, bgd.copy(), fgd.copy(), 1, cv2.GC_EVAL_FREEZE_MODEL)
+        return np.isin(m, (cv2.GC_FGD, cv2.GC_PR_FGD))
+
+    out = np.empty((len(frames),) + frames.shape[1:3], bool)
+    for i, mask in enumerate(in_threads(cut, range(len(frames)))):
+        out[i] = mask
         if progress is not None:
             progress(done + i + 1, total)
     return out
