@@ -694,3 +694,29 @@ def test_in_threads_keeps_order_bounds_what_waits_and_raises_in_turn() -> None:
         for r in in_threads(fails_at_3, range(10), workers=2):
             got.append(r)
     assert got == [0, 1, 2]
+
+
+def test_tracks_are_the_same_on_one_thread_and_on_several(scene: Path) -> None:
+    """The flows of the frame pairs are computed ahead in threads (a flow object per thread) and
+    the re-observation measures each frame in its own thread: neither may change a track."""
+    import torch
+
+    from adnerf.model.data import load_dataset
+    from adnerf.preprocess.tracking import TrackConfig, extend_tracks, track_points
+
+    ds = load_dataset(scene)
+    frames, labels = ds.frames[:40], ds.parsing[:40]
+    before = torch.get_num_threads()
+    got = []
+    try:
+        for threads in (1, 3):
+            torch.set_num_threads(threads)
+            tracks = track_points(frames, labels, TrackConfig())
+            seeds = tracks.uv[tracks.seed_frame, np.arange(tracks.uv.shape[1])]
+            got.append((tracks, extend_tracks(frames, labels, tracks, lambda i, idx: seeds[idx], TrackConfig(), reach=40)))
+    finally:
+        torch.set_num_threads(before)
+    (t1, e1), (t3, e3) = got
+    assert t1.observed.sum() > 200 and e1.observed.sum() > t1.observed.sum()  # the re-observation adds observations
+    np.testing.assert_array_equal(t1.uv, t3.uv)
+    np.testing.assert_array_equal(e1.uv, e3.uv)

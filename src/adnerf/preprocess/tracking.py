@@ -15,6 +15,7 @@ so the corner found at integer array position ``(x, y)`` is at ``(x + 0.5, y + 0
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Callable
 
@@ -22,6 +23,7 @@ import cv2
 import numpy as np
 
 from ..model.data import LABEL_HEAD
+from ..threads import in_threads
 
 __all__ = ["FLOWS", "TrackConfig", "Tracks", "dense_flow", "rigid_region", "track_points", "extend_tracks"]
 
@@ -169,7 +171,7 @@ def track_points(
     Returns:
         :class:`Tracks` with tracks shorter than ``config.min_length`` removed.
     """
-    flow = dense_flow(config.flow)
+    dense_flow(config.flow)  # an unknown method fails here, before any work
     n = len(frames)
     gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
     paths: list[list[tuple[int, float, float]]] = []
@@ -193,11 +195,18 @@ def track_points(
             alive.append(len(paths))
             paths.append([(i, float(x), float(y))])
 
+    local = threading.local()
+
+    def pair(i: int) -> tuple[np.ndarray, np.ndarray]:  # a flow object per thread: they keep state
+        if not hasattr(local, "flow"):
+            local.flow = dense_flow(config.flow)
+        return local.flow(gray[i], gray[i + 1]), local.flow(gray[i + 1], gray[i])
+
+    flows = in_threads(pair, range(n - 1))  # computed ahead, side by side, while the tracks follow
     seed(0)
     for i in range(n - 1):
+        fwd, bwd = next(flows)
         if alive:
-            fwd = flow(gray[i], gray[i + 1])
-            bwd = flow(gray[i + 1], gray[i])
             pts = np.array([paths[p][-1][1:] for p in alive])
             nxt = pts + _sample(fwd, pts)
             back = nxt + _sample(bwd, nxt)
@@ -281,13 +290,15 @@ def extend_tracks(
     n = len(frames)
     win = (config.anchor_window or 15,) * 2
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-    for i in range(n):
+    def observe(i: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Frame ``i``'s new observations: (track indices, positions) per seed frame."""
         region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin, _limit(limits, i))
         near = np.flatnonzero((np.abs(tracks.seed_frame - i) <= reach) & ~np.isfinite(uv[i, :, 0]))
         if len(near) == 0:
-            continue
+            return []
         guess = predict(i, near)
         inside = _inside(region, guess)
+        found = []
         for s in np.unique(tracks.seed_frame[near[inside]]):
             sel = near[inside][tracks.seed_frame[near[inside]] == s]
             g = guess[np.searchsorted(near, sel)]
@@ -299,5 +310,11 @@ def extend_tracks(
             ok &= np.linalg.norm(back.reshape(-1, 2) + 0.5 - tracks.uv[s, sel], axis=1) < config.max_fb_error
             ok &= np.linalg.norm(got - g, axis=1) < config.max_anchor_shift
             ok &= _inside(region, got)
-            uv[i, sel[ok]] = got[ok]
+            found.append((sel[ok], got[ok]))
+        return found
+
+    # each frame reads the seed frames' positions (tracks.uv) and writes only its own row of uv
+    for i, found in enumerate(in_threads(observe, range(n))):
+        for sel, got in found:
+            uv[i, sel] = got
     return Tracks(uv=uv, seed_frame=tracks.seed_frame.copy())
