@@ -363,7 +363,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
     extra = {} if args.pose_landmarks is None else {"pose_landmarks": args.pose_landmarks}
-    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, clothes=args.clothes, focal=args.focal, test_fraction=args.test_fraction, fps=args.fps, **extra)
+    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, clothes=args.clothes, focal=args.focal, test_fraction=args.test_fraction, fps=args.fps, start=args.start, end=args.end, crop=args.crop, size=args.size or None, **extra)
     with step_bars() as bars:  # closed before an error line is printed
         report = preprocess_video(args.video, args.output, cfg, progress=bars, overwrite=args.overwrite)
     keys = ("frames", "decode", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "face_clothes", "layers", "layers_warning", "torso", "torso_warning", "pose_reprojection_rms_px", "pose_landmark_rms_px", "plate_filled_fraction", "timings_s")
@@ -706,10 +706,14 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
     pre.add_argument("--cut", choices=("jaw", "neck-row"), default="jaw", help="where head meets torso for the classical parser: the landmarks' jaw line, or the silhouette's narrowest row (the earlier cut, for comparisons)")
     pre.add_argument("--clothes", choices=("grabcut", "none"), default="grabcut", help="clothes the classical parser took for background (they never move): grabcut (default) adds them to the torso by colour below the chin; none leaves them")
-    pre.add_argument("--focal", type=_positive, default=None, help="focal length in pixels, > 0 (default 1.33 x the larger frame side)")
+    pre.add_argument("--focal", type=_positive, default=None, help="focal length of the camera in the video's pixels, > 0 (default 1.33 x the larger frame side); the crop and --size scale it")
     pre.add_argument("--pose-landmarks", type=_number(float, 0.0, 1000.0), default=None, help="weight of a rigid landmark (nose, eye corners) against a flow track in the head-pose bundle adjustment, 0 to 1000 (default: PreprocessConfig.pose_landmarks, 30; 0: the tracks alone, as before)")
     pre.add_argument("--test-fraction", type=_number(float, 0.0, 0.9, open_lo=True), default=0.1, help="fraction of frames at the end held out for testing, in (0, 0.9]")
     pre.add_argument("--fps", type=_number(float, 1.0, 240.0), default=None, help="frame rate of the dataset, 1 to 240: frames are placed on this constant rate by their timestamps, repeated or left out where a variable-rate file (phones) has gaps (default: the clip's nominal rate)")
+    pre.add_argument("--start", type=_number(float, 0.0), default=0.0, help="seconds into the video (from its first frame) where the dataset begins; frames and audio are cut alike")
+    pre.add_argument("--end", type=_positive, default=None, help="seconds into the video where the dataset ends (default: its end)")
+    pre.add_argument("--crop", default="auto", help="the part of the frame the dataset shows: auto (a fixed square around the face's range over the clip, with the shoulders; a frame already within --size is used whole), none (the whole frame) or X,Y,W,H in the video's pixels")
+    pre.add_argument("--size", type=_number(int, 0, 4096), default=512, help="longest side of the dataset's frames in pixels: the crop is scaled down to it, never up; 0 keeps the crop's size")
     pre.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the video)")
     pre.set_defaults(func=_cmd_preprocess)
 

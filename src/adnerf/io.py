@@ -25,6 +25,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -198,6 +199,15 @@ def _decode_audio(path: Path, container, sample_rate: int | None, *, partial: li
     return AudioTrack(samples=samples, sample_rate=target_rate, start=start or 0.0)
 
 
+def _audio_span(track: AudioTrack, t0: float, t1: float | None) -> AudioTrack:
+    """The part of ``track`` between container times ``t0`` and ``t1`` (``None``: to its end),
+    keeping its clock (``start`` is when its first kept sample plays)."""
+    rate = track.sample_rate
+    a = max(0, int(round((t0 - track.start) * rate)))
+    b = len(track.samples) if t1 is None else max(a, int(round((t1 - track.start) * rate)))
+    return AudioTrack(track.samples[a:b], rate, track.start + a / rate)
+
+
 def read_audio(path: str | Path, sample_rate: int | None = None) -> AudioTrack:
     """Decode the first audio stream of a file to mono float32.
 
@@ -218,7 +228,17 @@ def read_audio(path: str | Path, sample_rate: int | None = None) -> AudioTrack:
         return _decode_audio(p, container, sample_rate)
 
 
-def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None = None, max_frames: int | None = None) -> Video:
+def read_video(
+    path: str | Path,
+    *,
+    audio: bool = True,
+    audio_rate: int | None = None,
+    max_frames: int | None = None,
+    start: float = 0.0,
+    end: float | None = None,
+    transform: Callable[[np.ndarray], np.ndarray] | None = None,
+    every: int = 1,
+) -> Video:
     """Decode a video's frames with their timestamps, and optionally its audio.
 
     Variable frame rate input is handled: each frame carries its own presentation time. A file
@@ -230,6 +250,12 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
         audio: Also decode the audio track (``Video.audio`` is ``None`` when there is none).
         audio_rate: Resample the audio to this rate; ``None`` keeps the native rate.
         max_frames: Stop after this many frames.
+        start: Seconds from the first frame's time: earlier frames are skipped (a trim).
+        end: Seconds from the first frame's time: frames from then on are not decoded; the audio
+            is cut to the same span (``start`` to ``end``), so frames and sound stay together.
+        transform: Applied to each upright frame as it is decoded (a crop, a resize): the clip is
+            held at the size it returns, never at the file's.
+        every: Keep every ``every``-th frame from ``start`` on (a sample of the clip).
 
     Returns:
         A :class:`Video`.
@@ -248,8 +274,12 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
         fps = float(stream.average_rate) if stream.average_rate else 0.0
         declared = int(stream.frames or 0)
         count = min(declared, max_frames or declared)
-        if count and stream.codec_context.width:  # the container's frame count, where it gives one
+        if start < 0 or (end is not None and not end > start):
+            raise MediaError(f"{p}: a trim needs 0 <= start < end; got start {start:g} s, end {end} s")
+        if count and stream.codec_context.width and transform is None and not start and end is None and every == 1:  # the container's frame count, where it gives one
             require(count * stream.codec_context.width * stream.codec_context.height * 3, f"{p}: {count} frames of {stream.codec_context.width}x{stream.codec_context.height} (decoded RGB)")
+        first_time: float | None = None
+        kept = 0  # frames from start on
         frames: list[np.ndarray] = []
         times: list[float] = []
 
@@ -258,21 +288,36 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
             return f"decoding stopped after frame {len(frames)}{of}, {max(times):.2f} s in{why}"
 
         try:
-            for frame in container.decode(stream):
-                if not frames:
+            for k, frame in enumerate(container.decode(stream)):
+                time = float(frame.time) if frame.time is not None else k / (fps or 25.0)
+                if first_time is None:
+                    first_time = time
                     turns = _upright_turns(p, getattr(frame, "rotation", 0) or 0)
+                if time - first_time < start - 1e-6:
+                    continue
+                if end is not None and time - first_time >= end - 1e-6:
+                    break
+                kept += 1
+                if (kept - 1) % every:
+                    continue
                 rgb = frame.to_ndarray(format="rgb24")
-                frames.append(np.ascontiguousarray(np.rot90(rgb, -turns)) if turns else rgb)  # rot90 turns counterclockwise
-                times.append(float(frame.time) if frame.time is not None else len(times) / (fps or 25.0))
+                rgb = np.ascontiguousarray(np.rot90(rgb, -turns)) if turns else rgb  # rot90 turns counterclockwise
+                frames.append(rgb if transform is None else np.ascontiguousarray(transform(rgb)))
+                if len(frames) == 1 and (transform is not None or start or end is not None) and count:
+                    held = count if end is None or not fps else min(count, int(np.ceil((end - start) * fps)) + 1)
+                    require(held * frames[0].nbytes, f"{p}: up to {held} frames of {frames[0].shape[1]}x{frames[0].shape[0]} (decoded RGB)")
+                times.append(time)
                 if max_frames is not None and len(frames) >= max_frames:
                     break
         except av.error.FFmpegError as exc:
             if not frames:
                 raise MediaError(f"{p}: cannot decode the video stream ({exc.strerror or exc})") from exc
             truncated = stopped(f" ({exc.strerror or exc})")
+        if not frames and first_time is not None and start:
+            raise MediaError(f"{p}: no frame {start:g} s or later after the first (the trim's start lies past the clip's end)")
         if not frames:
             raise MediaError(f"{p}: the video stream has no decodable frames")
-        if truncated is None and max_frames is None and declared > len(frames) + max(2, declared // 100):
+        if truncated is None and max_frames is None and not start and end is None and every == 1 and declared > len(frames) + max(2, declared // 100):
             truncated = stopped("")
     track = None
     if audio:
@@ -280,6 +325,8 @@ def read_video(path: str | Path, *, audio: bool = True, audio_rate: int | None =
             if container.streams.audio:
                 faults: list[str] = []
                 track = _decode_audio(p, container, audio_rate, partial=faults)
+                if (start or end is not None) and first_time is not None:
+                    track = _audio_span(track, first_time + start, None if end is None else first_time + end)
                 if faults:
                     truncated = "; ".join(x for x in (truncated, *faults) if x)
     order = np.argsort(np.asarray(times), kind="stable")

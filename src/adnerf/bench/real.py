@@ -247,7 +247,7 @@ def bench_real(
     run_dir = folder / (f"run_{iterations[0]}+{iterations[1]}it_seed{seed}" if iterations else f"run_{minutes:g}min_seed{seed}")
     t0 = time.perf_counter()
     report_path = data / "preprocess_report.json"
-    if not (report_path.exists() and json.loads(report_path.read_text())["config"] == asdict(pcfg)):
+    if not (report_path.exists() and {**asdict(PreprocessConfig()), **json.loads(report_path.read_text())["config"]} == asdict(pcfg)):  # settings added since take their defaults
         if (run_dir / "run.json").exists():  # it would go on training on a dataset it was not started on
             raise ValueError(f"{run_dir} was trained on the dataset of other preprocessing settings; remove it (or choose another --work) to train afresh")
         log(f"preprocessing {clip} into {data}")

@@ -85,6 +85,9 @@ class SceneMeta:
         source: Where the dataset came from (free text).
         eyes: Both eyes' centres in canonical space (image-left first), or ``None`` (datasets
             without landmarks or made before blinks): where training favours rays for the eyes.
+        framing: Where the frames lie in the source video, when preprocessing cropped, scaled or
+            trimmed it (:class:`adnerf.preprocess.framing.Framing` as a dict: ``source_size``,
+            ``crop``, ``size``, ``start_s``); ``None`` when the frames are the video's own.
     """
 
     fps: float
@@ -103,13 +106,15 @@ class SceneMeta:
     test: list[int]
     source: str = ""
     eyes: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    framing: dict | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready fields; ``eyes`` only when known (so metadata from before it reads and
         fingerprints as it did)."""
         d = asdict(self)
-        if d["eyes"] is None:
-            del d["eyes"]
+        for key in ("eyes", "framing"):
+            if d[key] is None:
+                del d[key]
         return d
 
     def validate(self, where: str = "meta.json") -> None:
@@ -418,7 +423,7 @@ def read_meta(root: str | Path) -> SceneMeta:
         )
     body = {k: v for k, v in doc.items() if k not in ("format", "version")}
     known = set(SceneMeta.__dataclass_fields__)
-    missing = known - set(body) - {"source", "eyes"}
+    missing = known - set(body) - {"source", "eyes", "framing"}
     if missing:
         raise DatasetError(f"{path}: missing keys {sorted(missing)}")
     unknown = set(body) - known

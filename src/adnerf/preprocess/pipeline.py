@@ -56,6 +56,7 @@ from ..model.data import (
 from ..outputs import OutputError, check_folder_output
 from .clothes import complete_torso
 from .frame_grid import nominal_rate, regular_grid
+from .framing import Framing, auto_crop, parse_crop, plan_framing
 from .headpose import project_points
 from .landmarks import (
     NOSE_BASE,
@@ -124,6 +125,17 @@ class PreprocessConfig:
             solved in overlapping segments joined by similarity alignment (the adjustment's cost
             grows with the square of the frames, as every track is re-observed in all of them).
         pose_overlap: Frames shared by consecutive segments.
+        start: Trim: seconds from the video's first frame where the dataset begins (frames and
+            audio cut alike).
+        end: Trim: seconds from the video's first frame where the dataset ends (``None``: the
+            video's end).
+        crop: The part of the frame the dataset shows (:mod:`.framing`): ``"auto"`` (a fixed
+            square around the face's range over the clip, with the shoulders; a frame whose
+            longer side is within ``size`` is used whole), ``"none"`` (the whole frame) or
+            ``"X,Y,W,H"`` in the source's pixels. The dataset records it (``meta.json``
+            ``framing``) so that renders can be pasted back.
+        size: Longest side of the dataset's frames in pixels: the crop is scaled down to it
+            (never up); ``None`` keeps the crop's size.
     """
 
     parser: str = "classical"
@@ -144,6 +156,10 @@ class PreprocessConfig:
     smooth_sigma: float = 0.0
     pose_segment: int = 300
     pose_overlap: int = 60
+    start: float = 0.0
+    end: float | None = None
+    crop: str = "auto"
+    size: int | None = 512
 
     def validate(self) -> None:
         """Raise :class:`PreprocessError` on impossible settings."""
@@ -170,6 +186,16 @@ class PreprocessConfig:
             raise PreprocessError(f"--face must be dlib, dlib:PREDICTOR.dat or none; got {self.face!r}")
         if self.face.startswith("dlib:") and not Path(self.face.split(":", 1)[1]).is_file():
             raise PreprocessError(f"--face {self.face}: no shape predictor file there")
+        from .framing import parse_crop
+
+        try:
+            parse_crop(self.crop)
+        except ValueError as exc:
+            raise PreprocessError(f"--crop: {exc}") from exc
+        if self.size is not None and not 16 <= self.size <= 4096:
+            raise PreprocessError(f"--size must be 16 to 4096 pixels; got {self.size}")
+        if not (self.start >= 0 and np.isfinite(self.start)) or (self.end is not None and not self.end > self.start):
+            raise PreprocessError(f"--start and --end must satisfy 0 <= start < end (seconds); got {self.start:g} and {self.end}")
         if self.focal is not None and not self.focal > 0:
             raise PreprocessError(f"--focal must be positive; got {self.focal}")
         if not 2 <= self.pose_overlap < self.pose_segment:
@@ -320,9 +346,38 @@ def _camera_motion(frames: np.ndarray, labels: np.ndarray, pairs: int = 8, gap: 
     return float(np.median(out)) if out else 0.0
 
 
+def _framing(video: Path, config: PreprocessConfig) -> tuple[Framing, dict]:
+    """The crop and scale of the dataset's frames in the source's (:mod:`.framing`), and what the
+    automatic crop found."""
+    from .landmarks import make_face_detector
+
+    first = read_video(video, audio=False, max_frames=1).frames[0]  # upright
+    source = (first.shape[1], first.shape[0])
+    crop = parse_crop(config.crop)
+    found: dict = {}
+    if crop == "auto":
+        if config.size is None or max(source) <= config.size:
+            crop = "none"  # the frame is already the model's size
+        else:
+            detector = make_face_detector(config.face)
+            if detector is None:
+                raise PreprocessError(f"{video}: --crop auto finds the face with the face detector, and --face is none; give --crop X,Y,W,H or --crop none")
+            try:
+                crop, found = auto_crop(video, detector, config.start, config.end)
+            except ValueError as exc:
+                raise PreprocessError(str(exc)) from exc
+    try:
+        return plan_framing(source, crop, config.size, config.start), found
+    except ValueError as exc:
+        raise PreprocessError(f"{video}: {exc}") from exc
+
+
 def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
-    v = read_video(video, audio=True)
-    doc: dict = {"source_frames": len(v.frames), "rotation_deg": v.rotation}
+    framing, found = _framing(video, config)
+    v = read_video(video, audio=True, start=config.start, end=config.end, transform=framing.transform if framing.cropped else None)
+    doc: dict = {"source_frames": len(v.frames), "rotation_deg": v.rotation, "framing": framing.to_dict()}
+    if found:
+        doc["crop_auto"] = found
     if v.truncated is not None:
         _report_warning(doc, "truncated_warning", f"{video}: the file ends early ({v.truncated}); the frames that decode are used")
     fps = float(config.fps or nominal_rate(v.timestamps, v.fps))
@@ -364,7 +419,7 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
         if any(gaps):
             _report_warning(doc, "audio_warning", f"{video}: the audio track {' and '.join(g for g in gaps if g)}: padded with silence there (the mouth of those frames is trained on silence)")
         write_wav(work.folder / "audio.wav", AudioTrack(samples.astype(np.float32), rate, 0.0))
-    work.save_json("decode", {"fps": fps, "n": n, "width": w, "height": h, "seconds": seconds, "audio": v.audio is not None, "doc": doc})
+    work.save_json("decode", {"fps": fps, "n": n, "width": w, "height": h, "seconds": seconds, "audio": v.audio is not None, "framing": framing.to_dict(), "doc": doc})
     bar("decode", 1, 1)
     return doc
 
@@ -481,9 +536,11 @@ def _landmarks(work: _Work, config: PreprocessConfig) -> np.ndarray | None:
     return None if config.face == "none" else work.load("landmarks")
 
 
-def _intrinsics(config: PreprocessConfig, w: int, h: int) -> tuple[float, float, float, float]:
-    f = config.focal if config.focal is not None else 1.33 * max(w, h)
-    return (float(f), float(f), w / 2.0, h / 2.0)
+def _intrinsics(config: PreprocessConfig, info: dict) -> tuple[float, float, float, float]:
+    """The dataset camera: the source's (``--focal`` in source pixels, or the guess) through the
+    crop and scale of the decode step's framing."""
+    framing = Framing.from_dict(info["framing"]) if "framing" in info else plan_framing((info["width"], info["height"]), "none", None)
+    return framing.intrinsics(config.focal)
 
 
 def _segments(n: int, length: int, overlap: int) -> list[tuple[int, int]]:
@@ -535,7 +592,7 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
     # the jaw-line layers (with them the 256 px check's median rotation error rose 0.92 -> 1.00 deg).
     frames, labels = work.load("frames"), work.load("parsing")
     info = work.load_json("decode")
-    K = _intrinsics(config, info["width"], info["height"])
+    K = _intrinsics(config, info)
     landmarks = _landmarks(work, config)
     detected = None if landmarks is None else work.load("face_detected")
     n = len(frames)
@@ -662,7 +719,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
     frames, labels, poses = work.load("frames"), _labels(work), work.load("poses")
     features = work.load("features")
     n = len(frames)
-    K = _intrinsics(config, info["width"], info["height"])
+    K = _intrinsics(config, info)
     landmarks = _landmarks(work, config)
     b = scene_bounds(labels, poses, K, config.head_width, None if landmarks is None else mouth_centres(landmarks), None if landmarks is None else eye_centres_px(landmarks))
     train, test = tail_split(n, config.test_fraction)
@@ -678,6 +735,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         train=train,
         test=test,
         source=f"adnerf preprocess {video.name}: parser={config.parser} face={config.face} flow={config.flow} focal={K[0]:g}",
+        framing=info["framing"] if "framing" in info and (Framing.from_dict(info["framing"]).cropped or config.start or config.end is not None) else None,
     )
     if info["audio"]:
         audio = read_audio(work.folder / "audio.wav")
