@@ -358,10 +358,14 @@ def _photo() -> np.ndarray:
 
 def _sample(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear lookup of ``image (h, w, 3)`` at pixel coordinates ``u`` (column), ``v`` (row)."""
-    mx = u.astype(np.float32).reshape(1, -1)
-    my = v.astype(np.float32).reshape(1, -1)
-    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    return out.reshape(-1, 3)
+    n = u.size
+    width = 1024  # remap's maps must be under 32767 wide: the points are laid out in rows
+    rows = max(1, -(-n // width))
+    mx = np.zeros(rows * width, np.float32)
+    my = np.zeros(rows * width, np.float32)
+    mx[:n], my[:n] = u.reshape(-1), v.reshape(-1)
+    out = cv2.remap(image, mx.reshape(rows, width), my.reshape(rows, width), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    return out.reshape(-1, 3)[:n]
 
 
 def _shrink(image: np.ndarray, scale: float) -> np.ndarray:
