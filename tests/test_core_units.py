@@ -134,3 +134,19 @@ def test_occupancy_grid_marks_an_analytic_sphere() -> None:
     assert int(grid.occupied.sum()) > before
     with pytest.raises(ValueError):
         OccupancyGrid((0, 0, 0), (1, 0, 1))
+
+
+def test_synth_texture_lookup_takes_more_points_than_remap_allows_in_a_row() -> None:
+    """cv2.remap refuses maps 32767 or more wide; a 512 px scene looks up ~100k points at once."""
+    import cv2
+
+    from adnerf.synth import _sample
+
+    rng = np.random.default_rng(0)
+    image = rng.random((40, 50, 3)).astype(np.float32)
+    u, v = rng.uniform(0, 49, 70_001), rng.uniform(0, 39, 70_001)
+    got = _sample(image, u, v)
+    assert got.shape == (70_001, 3)
+    part = slice(69_000, 70_001)
+    ref = cv2.remap(image, u[part].astype(np.float32)[None], v[part].astype(np.float32)[None], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)[0]
+    np.testing.assert_array_equal(got[part], ref)
