@@ -118,3 +118,45 @@ def test_preprocess_auto_crop_finds_the_face_in_a_wide_shot(webcam: tuple[Path, 
     assert w < 450  # a crop, not the frame
     report = json.loads((out / "preprocess_report.json").read_text())
     assert report["decode"]["crop_auto"]["found"] >= 3
+
+
+def _spliced(webcam: tuple[Path, Path], tmp_path: Path) -> Path:
+    """The scene's 3 s with its last 1.2 s reframed (zoomed by 20 %, as a splice of another
+    take): the picture jumps between frames 44 and 45 (1.80 s)."""
+    import cv2
+
+    scene, _ = webcam
+    clip = read_video(scene / "video.mp4")
+    frames = clip.frames.copy()
+    for k in range(45, len(frames)):
+        frames[k] = cv2.resize(frames[k][8:88, 8:88], (96, 96), interpolation=cv2.INTER_LINEAR)
+    return write_video(tmp_path / "spliced.mp4", frames, clip.fps, clip.audio.starting_at(float(clip.timestamps[0])))
+
+
+def test_a_spliced_clip_is_refused_with_its_clean_stretch_named(webcam: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from adnerf.preprocess.cuts import find_cuts
+
+    video = _spliced(webcam, tmp_path)
+    cuts = find_cuts(read_video(video).frames)
+    assert cuts.frames == [45] and cuts.longest(75) == (0, 45)
+    assert main(["preprocess", str(video), "-o", str(tmp_path / "data")]) == 2
+    err = capsys.readouterr().err
+    assert "1.80 s into the video" in err and "--start 0.00 --end 1.80 uses it" in err and "--allow-cuts" in err
+    assert not (tmp_path / "data").exists()
+
+
+def test_allow_cuts_keeps_the_frames_and_reports_the_cut(webcam: tuple[Path, Path], tmp_path: Path) -> None:
+    video = _spliced(webcam, tmp_path)
+    assert main(["preprocess", str(video), "-o", str(tmp_path / "data"), "--allow-cuts", "--features", "none"]) == 0
+    report = json.loads((tmp_path / "data" / "preprocess_report.json").read_text())
+    assert [c["frame"] for c in report["decode"]["cuts"]] == [45] and report["decode"]["cuts"][0]["time_s"] == pytest.approx(1.8)
+    assert "cuts_warning" in report["decode"]
+
+
+def test_a_talking_head_without_an_edit_has_no_cut(webcam: tuple[Path, Path]) -> None:
+    from adnerf.preprocess.cuts import find_cuts
+
+    scene, wide = webcam
+    for video in (scene / "video.mp4", wide):  # the head turns and speaks; the picture never jumps
+        cuts = find_cuts(read_video(video).frames)
+        assert cuts.frames == [] and cuts.changed.max() < 0.05

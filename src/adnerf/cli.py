@@ -363,7 +363,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     from .preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
     extra = {} if args.pose_landmarks is None else {"pose_landmarks": args.pose_landmarks}
-    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, clothes=args.clothes, focal=args.focal, test_fraction=args.test_fraction, fps=args.fps, start=args.start, end=args.end, crop=args.crop, size=args.size or None, **extra)
+    cfg = PreprocessConfig(parser=args.parser, features=args.features, face=args.face, flow=args.flow, cut=args.cut, clothes=args.clothes, focal=args.focal, test_fraction=args.test_fraction, fps=args.fps, start=args.start, end=args.end, crop=args.crop, size=args.size or None, allow_cuts=args.allow_cuts, **extra)
     with step_bars() as bars:  # closed before an error line is printed
         report = preprocess_video(args.video, args.output, cfg, progress=bars, overwrite=args.overwrite)
     keys = ("frames", "decode", "parse_face_failures", "face_detected", "face_interpolated", "face_head_torso_cut", "face_clothes", "layers", "layers_warning", "torso", "torso_warning", "pose_reprojection_rms_px", "pose_landmark_rms_px", "plate_filled_fraction", "timings_s")
@@ -714,6 +714,7 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--end", type=_positive, default=None, help="seconds into the video where the dataset ends (default: its end)")
     pre.add_argument("--crop", default="auto", help="the part of the frame the dataset shows: auto (a fixed square around the face's range over the clip, with the shoulders; a frame already within --size is used whole), none (the whole frame) or X,Y,W,H in the video's pixels")
     pre.add_argument("--size", type=_number(int, 0, 4096), default=512, help="longest side of the dataset's frames in pixels: the crop is scaled down to it, never up; 0 keeps the crop's size")
+    pre.add_argument("--allow-cuts", action="store_true", help="keep a clip whose picture jumps (shot cuts, reframings); by default it is refused with the longest clean stretch named")
     pre.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the video)")
     pre.set_defaults(func=_cmd_preprocess)
 

@@ -55,6 +55,7 @@ from ..model.data import (
 )
 from ..outputs import OutputError, check_folder_output
 from .clothes import complete_torso
+from .cuts import find_cuts
 from .frame_grid import nominal_rate, regular_grid
 from .framing import Framing, auto_crop, parse_crop, plan_framing
 from .headpose import project_points
@@ -139,6 +140,8 @@ class PreprocessConfig:
             longer side is within ``size`` is used whole), ``"none"`` (the whole frame) or
             ``"X,Y,W,H"`` in the source's pixels. The dataset records it (``meta.json``
             ``framing``) so that renders can be pasted back.
+        allow_cuts: Keep a clip with shot cuts or reframings (:mod:`.cuts`); by default it is refused
+            with the longest clean stretch named.
         size: Longest side of the dataset's frames in pixels: the crop is scaled down to it
             (never up); ``None`` keeps the crop's size.
     """
@@ -166,6 +169,7 @@ class PreprocessConfig:
     end: float | None = None
     crop: str = "auto"
     size: int | None = 512
+    allow_cuts: bool = False
 
     def validate(self) -> None:
         """Raise :class:`PreprocessError` on impossible settings."""
@@ -399,6 +403,19 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
     if v.audio is None and config.features != "none":
         raise PreprocessError(f"{video}: the video has no audio track (use --features none to make a silent dataset)")
     doc.update(fps=fps, duplicated=grid.duplicated, dropped=grid.dropped)
+    cuts = find_cuts(frames)
+    doc["cuts"] = [{"frame": k, "time_s": round(config.start + k / fps, 3), "changed": round(float(cuts.changed[k - 1]), 3)} for k in cuts.frames]
+    if cuts.frames:
+        a, b = cuts.longest(n)
+        at = ", ".join(f"{c['time_s']:.2f} s" for c in doc["cuts"][:6]) + (" ..." if len(cuts.frames) > 6 else "")
+        what = f"{len(cuts.frames)} cut(s) or reframing(s) (the picture jumps at {at} into the video)"
+        t0, t1 = config.start + a / fps, config.start + b / fps
+        if not config.allow_cuts:
+            raise PreprocessError(
+                f"{video}: the clip has {what}; a static camera is assumed, and two framings would train as one. "
+                f"The longest clean stretch is {t0:.2f}-{t1:.2f} s ({(b - a) / fps:.1f} s): --start {t0:.2f} --end {t1:.2f} uses it; --allow-cuts keeps every frame"
+            )
+        _report_warning(doc, "cuts_warning", f"{video}: the clip has {what}; kept (--allow-cuts)")
     if not grid.identity:
         own = nominal_rate(v.timestamps, v.fps)
         if config.fps and regular_grid(v.timestamps, own).identity:  # a steady clip, asked for another rate
