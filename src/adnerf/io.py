@@ -475,17 +475,12 @@ def write_video(
 ) -> Path:
     """Encode an mp4 (h264 yuv420p + aac mono) with audio aligned to the first frame.
 
-    The frames are handed to a :class:`VideoWriter` one by one (which see: odd sizes are padded,
-    the file appears only when complete).
+    The frames are handed to a :class:`VideoWriter` one by one (which see for ``path``, ``fps``,
+    ``audio``, ``sample_rate`` and ``crf``: odd sizes are padded, the file appears only when
+    complete).
 
     Args:
-        path: Output ``.mp4`` path; written to a temporary file first, then renamed.
         frames: uint8 RGB frames ``(N, H, W, 3)`` (or float in ``[0, 1]``, converted).
-        fps: Frame rate (may be fractional, e.g. 29.97).
-        audio: Mono samples ``(n,)`` (float in ``[-1, 1]``) or an :class:`AudioTrack`; ``None``
-            writes a silent video.
-        sample_rate: Rate of ``audio`` when it is an array.
-        crf: h264 quality (lower is better; 18 is visually lossless).
 
     Returns:
         The written path.
