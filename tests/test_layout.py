@@ -15,7 +15,7 @@ import adnerf
 PACKAGE = Path(adnerf.__file__).parent
 
 # The toolkit parts a researcher composes, and the small utilities beside them (adnerf/*.py).
-TOOLKIT = {"rays", "cameras", "pose", "samplers", "rng", "occupancy", "encodings", "fields", "compositor", "renderer", "analytic", "metrics", "io", "atomic", "outputs", "allocator", "memory", "lock", "ridge"}
+TOOLKIT = {"rays", "cameras", "pose", "samplers", "rng", "occupancy", "encodings", "fields", "compositor", "renderer", "analytic", "metrics", "io", "atomic", "outputs", "allocator", "memory", "lock", "ridge", "threads"}
 # What each room may import besides itself and the toolkit.
 MAY_IMPORT = {
     "audio": set(),
