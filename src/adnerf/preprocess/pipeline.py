@@ -196,8 +196,6 @@ class PreprocessConfig:
             raise PreprocessError(f"--face must be dlib, dlib:PREDICTOR.dat or none; got {self.face!r}")
         if self.face.startswith("dlib:") and not Path(self.face.split(":", 1)[1]).is_file():
             raise PreprocessError(f"--face {self.face}: no shape predictor file there")
-        from .framing import parse_crop
-
         try:
             parse_crop(self.crop)
         except ValueError as exc:
