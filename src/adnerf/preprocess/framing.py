@@ -130,7 +130,7 @@ def square_around(face: tuple[float, float, float, float], face_width: float, so
     return (left, top, side, side)
 
 
-def auto_crop(video: str | Path, detector, start: float = 0.0, end: float | None = None) -> tuple[tuple[int, int, int, int], dict]:  # noqa: ANN001
+def auto_crop(video: str | Path, detector, source_size: tuple[int, int], start: float = 0.0, end: float | None = None) -> tuple[tuple[int, int, int, int], dict]:  # noqa: ANN001
     """The fixed square around the face's range over the clip (:func:`square_around`).
 
     The clip is sampled :data:`SAMPLES_PER_SECOND` times a second (at most :data:`MAX_SAMPLES`
@@ -139,6 +139,7 @@ def auto_crop(video: str | Path, detector, start: float = 0.0, end: float | None
     Args:
         video: The source video.
         detector: A :class:`~adnerf.preprocess.landmarks.FaceDetector`.
+        source_size: ``(width, height)`` of the video's upright frames.
         start: Trim start, seconds from the first frame.
         end: Trim end (``None``: the clip's end).
 
@@ -155,13 +156,12 @@ def auto_crop(video: str | Path, detector, start: float = 0.0, end: float | None
     fps = float(meta.get("fps") or 25.0)
     span = (end if end is not None else float(meta.get("duration") or 0.0)) - start
     every = max(1, int(round(fps / SAMPLES_PER_SECOND)), int(np.ceil(span * fps / MAX_SAMPLES)))
-    holder: dict = {}
+    W, H = source_size
+    scale = min(2.0, DETECT_SIDE / max(W, H))
+    size = (round(W * scale), round(H * scale))
 
     def shrink(frame: np.ndarray) -> np.ndarray:
-        h, w = frame.shape[:2]
-        s = min(2.0, DETECT_SIDE / max(h, w))
-        holder["size"], holder["scale"] = (w, h), s
-        return frame if s == 1.0 else cv2.resize(frame, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+        return frame if scale == 1.0 else cv2.resize(frame, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
 
     sample = read_video(video, audio=False, start=start, end=end, transform=shrink, every=every)
     boxes = []
@@ -169,13 +169,13 @@ def auto_crop(video: str | Path, detector, start: float = 0.0, end: float | None
         found = detector.detect(frame)
         if found:
             best = max(found, key=lambda d: d.score)
-            boxes.append(np.asarray(best.box, dtype=np.float64) / holder["scale"])
+            boxes.append(np.asarray(best.box, dtype=np.float64) / scale)
     if not boxes:
         raise ValueError(f"{video}: --crop auto found no face in the {len(sample.frames)} frames it sampled; give the crop as --crop X,Y,W,H (source pixels) or --crop none")
     b = np.stack(boxes)
     face = (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
     width = float(np.median(b[:, 2] - b[:, 0]))
-    crop = square_around(face, width, holder["size"])
+    crop = square_around(face, width, source_size)
     return crop, {"sampled": len(sample.frames), "found": len(boxes), "face_box": [round(v, 1) for v in face], "face_width_px": round(width, 1)}
 
 

@@ -373,7 +373,7 @@ def _framing(video: Path, config: PreprocessConfig) -> tuple[Framing, dict]:
             if detector is None:
                 raise PreprocessError(f"{video}: --crop auto finds the face with the face detector, and --face is none; give --crop X,Y,W,H or --crop none")
             try:
-                crop, found = auto_crop(video, detector, config.start, config.end)
+                crop, found = auto_crop(video, detector, source, config.start, config.end)
             except ValueError as exc:
                 raise PreprocessError(str(exc)) from exc
     try:
