@@ -10,8 +10,11 @@ from torch.autograd import gradcheck
 
 from adnerf.compositor import composite, over, render_weights
 from adnerf.encodings import PositionalEncoding, TriPlaneEncoding
-from adnerf.fields import FieldConfig, HeadField
+from adnerf.fields import FieldConfig, RadianceField
+from adnerf.model.conditions import FrameCondition
+from adnerf.model.layers import RadianceLayer
 from adnerf.pose import HeadPose, from_canonical, perturb_pose, to_canonical
+from adnerf.rays import RayBundle
 
 D = torch.float64
 
@@ -67,17 +70,21 @@ def test_encodings() -> None:
     assert gradcheck(lambda p: torch.nn.functional.grid_sample(p, xi.detach()[None, None, :, :2].expand(3, 1, 6, 2), align_corners=True), (plane.detach().clone().requires_grad_(True),))
 
 
-def test_head_field_through_the_warp() -> None:
+def test_head_layer_through_the_warp() -> None:
+    """Gradients of a canonical head layer's rendered pixels with respect to the audio code and
+    the head translation, through the warp, the sampling bounds and the compositing."""
     cfg = FieldConfig(encoding="pe", pe_frequencies=2, dir_frequencies=1, depth=2, width=8, skips=(1,), cond_dim=4)
-    field = HeadField(cfg).double()
-    x = torch.randn(3, 3, dtype=D, generator=_g(), requires_grad=True)
-    d = torch.nn.functional.normalize(torch.randn(3, 3, dtype=D, generator=_g(1)), dim=-1)
+    torch.manual_seed(0)
+    field = RadianceField(cfg).double()
+    head = RadianceLayer("head", field, None, ((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5)), (6, 0), space="canonical", conditions=("audio",))
+    origins = torch.zeros(3, 3, dtype=D)
+    dirs = torch.nn.functional.normalize(torch.tensor([[0.05, 0.0, 1.0], [-0.1, 0.08, 1.0], [0.0, -0.12, 1.0]], dtype=D), dim=-1)
     a = torch.randn(4, dtype=D, generator=_g(2), requires_grad=True)
-    t = torch.tensor([0.0, 0.1, 0.3], dtype=D, requires_grad=True)
+    t = torch.tensor([0.0, 0.1, 2.0], dtype=D, requires_grad=True)
     R = So3.exp(torch.tensor([0.3, 0.2, -0.1], dtype=D)).matrix()
 
-    def f(x, a, t):
-        out = field(x, d, pose=HeadPose(R, t), audio=a)
-        return out.rgb, out.density
+    def f(a, t):
+        out = head.render(RayBundle(origins, dirs), FrameCondition(a, HeadPose(R, t))).final
+        return out.rgb, out.opacity
 
-    assert gradcheck(f, (x, a, t))
+    assert gradcheck(f, (a, t))

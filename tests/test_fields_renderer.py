@@ -9,16 +9,12 @@ import torch
 
 from adnerf.analytic import UniformSphere
 from adnerf.cameras import intrinsics_matrix, pixel_rays
-from adnerf.fields import (
-    FieldConfig,
-    HeadField,
-    RadianceField,
-    TorsoField,
-    fast_config,
-    paper_config,
-)
+from adnerf.fields import FieldConfig, RadianceField, fast_config, paper_config
+from adnerf.model.conditions import FrameCondition
+from adnerf.model.layers import RadianceLayer
 from adnerf.occupancy import OccupancyGrid
 from adnerf.pose import HeadPose
+from adnerf.rays import RayBundle
 from adnerf.renderer import VolumeRenderer
 from adnerf.samplers import NearFarBounds
 
@@ -70,34 +66,48 @@ def test_config_round_trip_and_state_dict(tmp_path) -> None:
     torch.testing.assert_close(loaded(x, None, a).rgb, field(x, None, a).rgb)
 
 
-def test_head_field_evaluates_in_canonical_space() -> None:
+def test_a_canonical_layer_sees_the_head_in_its_own_frame() -> None:
+    """A head layer's render of camera rays under pose (R, t) is the field's render of the same
+    rays moved by the inverse pose; fails if the layer warps by the pose instead of its inverse,
+    or leaves the directions unturned."""
     torch.manual_seed(0)
-    head = HeadField(FieldConfig(encoding="pe", pe_frequencies=4, dir_frequencies=2, depth=3, width=32, skips=(2,), cond_dim=4))
-    R = torch.linalg.matrix_exp(torch.tensor([[0, 0, 1.0], [0, 0, 0], [-1.0, 0, 0]]) * 0.4)
-    pose = HeadPose(R, torch.tensor([0.1, 0.0, 3.0]))
-    can = torch.randn(10, 3)
-    d_can = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1)
-    a = torch.randn(4)
-    # A camera-space point that is the canonical point moved by the pose sees the same field value.
-    moved = head(pose.from_canonical(can), d_can @ R.T, pose=pose, audio=a)
-    direct = head.field(can, d_can, a)
-    torch.testing.assert_close(moved.rgb, direct.rgb, rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(moved.density, direct.density, rtol=1e-5, atol=1e-5)
+    field = RadianceField(FieldConfig(encoding="pe", pe_frequencies=4, dir_frequencies=2, depth=3, width=32, skips=(2,), cond_dim=4, density_activation="softplus")).double()
+    box = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    head = RadianceLayer("head", field, None, box, (16, 0), space="canonical", conditions=("audio",))
+    R = torch.linalg.matrix_exp(torch.tensor([[0, 0, 1.0], [0, 0, 0], [-1.0, 0, 0]], dtype=torch.float64) * 0.4)
+    pose = HeadPose(R, torch.tensor([0.1, 0.0, 3.0], dtype=torch.float64))
+    rays = pixel_rays(intrinsics_matrix(20.0, 20.0, 6.0, 6.0), 12, 12).flatten()
+    audio = torch.randn(4, dtype=torch.float64)
+    with torch.no_grad():
+        posed = head.render(rays, FrameCondition(audio, pose)).final
+        moved = RayBundle(pose.to_canonical(rays.origins), rays.directions @ R)  # R^T d, row-wise
+        still = RadianceLayer("head", field, None, box, (16, 0), space="camera", conditions=("audio",))
+        direct = still.render(moved, FrameCondition(audio, pose)).final
+    near, far = head.crossing(rays, pose)
+    assert (far > near).sum() > 50 and posed.opacity.max() > 0.3  # the rays do cross the head
+    torch.testing.assert_close(posed.rgb, direct.rgb)
+    torch.testing.assert_close(posed.opacity, direct.opacity)
+    torch.testing.assert_close(posed.depth, direct.depth)
 
 
-def test_torso_field_uses_pose_and_audio() -> None:
+def test_a_camera_layer_reads_the_pose_and_the_audio() -> None:
+    """The torso layer: camera space, its field conditioned on the audio code and the pose's code."""
     torch.manual_seed(0)
-    torso = TorsoField(fast_config(cond_dim=8 + 9), audio_dim=8)
-    x = torch.randn(16, 3) * 0.5
-    pose = HeadPose(torch.eye(3), torch.zeros(3))
-    a = torch.randn(8)
-    base = torso(x, x, pose=pose, audio=a).rgb
-    assert not torch.allclose(base, torso(x, x, pose=pose.perturbed(yaw=0.3), audio=a).rgb)
-    assert not torch.allclose(base, torso(x, x, pose=pose, audio=a + 1).rgb)
-    with pytest.raises(ValueError, match="audio_dim"):
-        TorsoField(fast_config(cond_dim=8), audio_dim=8)
-    with pytest.raises(ValueError, match="no audio"):
-        torso(x, x, pose=pose)
+    field = RadianceField(fast_config(cond_dim=8 + 9, aabb_min=(-1, -1, 2), aabb_max=(1, 1, 4))).double()
+    torso = RadianceLayer("torso", field, None, ((-1, -1, 2), (1, 1, 4)), (16, 0), space="camera", conditions=("audio", "pose"))
+    rays = pixel_rays(intrinsics_matrix(10.0, 10.0, 4.0, 4.0), 8, 8).flatten()
+    pose = HeadPose(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+    a = torch.randn(8, dtype=torch.float64)
+    with torch.no_grad():
+        base = torso.render(rays, FrameCondition(a, pose)).final.rgb
+        assert not torch.allclose(base, torso.render(rays, FrameCondition(a, pose.perturbed(yaw=0.3))).final.rgb)
+        assert not torch.allclose(base, torso.render(rays, FrameCondition(a + 1, pose)).final.rgb)
+        # Its space is the camera's: moving the head moves no sample of the torso.
+        moved = HeadPose(pose.R, torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64))
+        near, far = torso.crossing(rays, moved)
+        near0, far0 = torso.crossing(rays, pose)
+    torch.testing.assert_close(near, near0)
+    torch.testing.assert_close(far, far0)
 
 
 def _sphere_setup(size: int = 16):

@@ -49,17 +49,20 @@ def components() -> nbformat.NotebookNode:
              "fine_err = (result.final.depth - truth_depth).abs()[hit].mean().item()\n"
              "coarse_err = (result.coarse.depth - truth_depth).abs()[hit].mean().item()\n"
              "print(f'depth error: coarse {coarse_err:.2e}, fine {fine_err:.2e}')\nassert fine_err < coarse_err"),
-        md("## 6. A head in canonical space\nA `HeadField` warps camera-space samples by the inverse head pose. "
-           "Here an (untrained) fast field shows that turning the head by 20 degrees turns its render."),
+        md("## 6. The product's layers\nA talking head is a stack of `RadianceLayer`s over a plate. The head layer lives in the "
+           "head's canonical space: camera rays are moved into it by the inverse head pose, and its field reads the frame's "
+           "audio code from a `FrameCondition`. Here an (untrained) fast field shows that turning the head by 20 degrees turns its render."),
         code("cfg = A.fast_config(cond_dim=8, aabb_min=(-1, -1, -1), aabb_max=(1, 1, 1))\n"
-             "head = A.HeadField(cfg)\npose = A.HeadPose(torch.eye(3), torch.tensor([0.0, 0.0, 3.0]))\n"
-             "audio = torch.randn(8)\nrenderer = A.VolumeRenderer(A.NearFarBounds(1.5, 4.5), n_coarse=32, n_fine=0)\n"
-             "frays = rays.map(lambda x: x.float())\n"
+             "field = A.RadianceField(cfg)\n"
+             "head = A.RadianceLayer('head', field, None, ((-1, -1, -1), (1, 1, 1)), (32, 0), space='canonical', conditions=('audio',))\n"
+             "pose = A.HeadPose(torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64))\n"
+             "audio = torch.randn(8)\nflat = rays.flatten()\n"
              "with torch.no_grad():\n"
-             "    a = renderer.render_chunked(frays, head, pose=pose, audio=audio).final\n"
-             "    b = renderer.render_chunked(frays, head, pose=pose.perturbed(yaw=math.radians(20)), audio=audio).final\n"
-             "fig, ax = plt.subplots(1, 2, figsize=(7, 3.5))\nax[0].imshow(a.rgb.numpy()); ax[0].set_title('pose')\n"
-             "ax[1].imshow(b.rgb.numpy()); ax[1].set_title('yaw + 20 deg'); plt.show()\n"
+             "    a = head.render(flat, A.FrameCondition(audio, pose)).final\n"
+             "    b = head.render(flat, A.FrameCondition(audio, pose.perturbed(yaw=math.radians(20)))).final\n"
+             "fig, ax = plt.subplots(1, 2, figsize=(7, 3.5))\n"
+             "ax[0].imshow(a.rgb.reshape(size, size, 3).numpy()); ax[0].set_title('pose')\n"
+             "ax[1].imshow(b.rgb.reshape(size, size, 3).numpy()); ax[1].set_title('yaw + 20 deg'); plt.show()\n"
              "assert not torch.allclose(a.rgb, b.rgb)"),
     ]
     return _notebook(cells)

@@ -22,9 +22,7 @@ from .encodings import PositionalEncoding, TriPlaneEncoding
 from .fields import (
     FieldConfig,
     FieldOutput,
-    HeadField,
     RadianceField,
-    TorsoField,
     fast_config,
     paper_config,
 )
@@ -54,7 +52,6 @@ __all__ = [
     "FieldConfig",
     "FieldOutput",
     "FrameCondition",
-    "HeadField",
     "HeadPose",
     "ImportanceSampler",
     "Layer",
@@ -68,7 +65,6 @@ __all__ = [
     "RenderOutput",
     "SphereBounds",
     "StratifiedSampler",
-    "TorsoField",
     "TriPlaneEncoding",
     "VolumeRenderer",
     "composite",

@@ -5,17 +5,13 @@ with fresh ``mmap`` pages and gives freed memory at the top of the heap back to 
 it exceeds the *trim threshold*. Both thresholds adapt (the mmap threshold rises to the largest
 block freed so far, up to 32 MiB), but a renderer whose batches vary in size from one chunk to
 the next (occupancy packing, rays that miss a layer) keeps crossing them: every few calls a
-multi-megabyte activation lands on pages the kernel must fault in and zero again. On the 2-core
-development machine (a virtual machine, where a page fault is dear) a process that loads the
-demo run and renders 22 of its held-out frames took 1.1 M minor page faults; with the thresholds
-fixed it took 0.14 M and rendered 29% more frames per second (median of three runs: 2.74 -> 3.54
-frames/s). Training 300 iterations of the same scene took 6-7% less time.
+multi-megabyte activation lands on pages the kernel must fault in and zero again (dear in a
+virtual machine; ``docs/decisions.md`` has the measurement).
 
 :func:`tune_allocator` fixes the mmap threshold at glibc's 64-bit ceiling (32 MiB; larger
 blocks are still mapped and unmapped directly) and the trim threshold at 1 GiB, so freed memory
 below those sizes is kept and reused. The cost is that the process keeps its peak heap: the
-resident size stays near the high-water mark instead of shrinking between batches (the demo
-render's peak RSS rose from 0.83 to 0.89 GB).
+resident size stays near the high-water mark instead of shrinking between batches.
 
 The ``adnerf`` command calls it at start-up (and ``adnerf bench fields`` in each worker
 process); library users may call it themselves. Setting the environment variable

@@ -29,7 +29,14 @@ __all__ = ["Camera", "intrinsics_matrix", "pixel_centers", "pixel_rays", "rays_t
 def intrinsics_matrix(
     fx: float, fy: float, cx: float, cy: float, *, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
 ) -> Tensor:
-    """Build ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` of shape ``(3, 3)``."""
+    """Build ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` of shape ``(3, 3)``.
+
+    Example:
+        >>> intrinsics_matrix(500.0, 500.0, 320.0, 240.0)
+        tensor([[500.,   0., 320.],
+                [  0., 500., 240.],
+                [  0.,   0.,   1.]], dtype=torch.float64)
+    """
     return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device)
 
 
@@ -68,6 +75,13 @@ def rays_through_pixels(K: Tensor, pixels: Tensor, cam_to_world: Tensor | None =
     Returns:
         A :class:`RayBundle` with origins and unit directions of shape ``(..., 3)``, in the dtype
         and on the device of ``pixels``.
+
+    Example:
+        >>> K = intrinsics_matrix(100.0, 100.0, 50.0, 50.0)
+        >>> rays = rays_through_pixels(K, torch.tensor([[50.0, 50.0], [150.0, 50.0]], dtype=torch.float64))
+        >>> rays.directions  # through the principal point: the optical axis; 100 px right: 45 degrees
+        tensor([[0.0000, 0.0000, 1.0000],
+                [0.7071, 0.0000, 0.7071]], dtype=torch.float64)
     """
     _check_K(K)
     if pixels.shape[-1] != 2:
@@ -103,6 +117,16 @@ def pixel_rays(K: Tensor, height: int, width: int, cam_to_world: Tensor | None =
     Returns:
         A :class:`RayBundle` whose ``origins`` and ``directions`` have shape ``(height, width, 3)``;
         directions have unit length. Pixel ``[i, j]`` is row ``i``, column ``j``.
+
+    Example:
+        >>> rays = pixel_rays(intrinsics_matrix(2.0, 2.0, 2.0, 2.0), 4, 4)
+        >>> rays.directions.shape
+        torch.Size([4, 4, 3])
+        >>> d = rays.directions[1, 1]  # the pixel centre (1.5, 1.5): half a pixel up-left of (cx, cy)
+        >>> d / d[2]
+        tensor([-0.2500, -0.2500,  1.0000], dtype=torch.float64)
+        >>> float(d.norm())
+        1.0
     """
     _check_K(K)
     if K.dim() != 2:
@@ -159,7 +183,14 @@ class Camera:
         return PinholeCamera(K4[None], self.world_to_cam.to(self.K)[None], h, w)
 
     def project(self, points: Tensor) -> Tensor:
-        """Project world points ``(..., 3)`` to continuous pixel coordinates ``(..., 2)``."""
+        """Project world points ``(..., 3)`` to continuous pixel coordinates ``(..., 2)``.
+
+        Example:
+            >>> cam = Camera(intrinsics_matrix(100.0, 100.0, 50.0, 50.0), 100, 100)
+            >>> cam.project(torch.tensor([[0.0, 0.0, 2.0], [1.0, -0.5, 2.0]], dtype=torch.float64))
+            tensor([[ 50.,  50.],
+                    [100.,  25.]], dtype=torch.float64)
+        """
         cam = self.world_to_cam.to(points)
         p = torch.einsum("ij,...j->...i", cam[:3, :3], points) + cam[:3, 3]
         flat = p.reshape(-1, 3)

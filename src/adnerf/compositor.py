@@ -38,6 +38,14 @@ def render_weights(densities: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         ``(weights, residual_transmittance)`` with shapes ``(..., S)`` and ``(...)``. The weights
         sum to ``1 - residual_transmittance`` up to rounding.
+
+    Example:
+        >>> import math
+        >>> weights, residual = render_weights(torch.ones(1, 3), torch.full((1, 3), math.log(2.0)))
+        >>> weights  # each interval stops half of the light that reaches it
+        tensor([[0.5000, 0.2500, 0.1250]])
+        >>> residual
+        tensor([0.1250])
     """
     tau = densities * deltas
     inclusive = torch.cumsum(tau, dim=-1)
@@ -90,6 +98,16 @@ def composite(
     Returns:
         A :class:`Composite` in the promoted dtype of the inputs (float64 intervals with
         float32 field outputs composite in float64).
+
+    Example:
+        >>> colors = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])  # a red sample, then a green one
+        >>> densities = torch.tensor([[1e9, 1e9]])  # the first is opaque
+        >>> t0, t1 = torch.tensor([[1.0, 2.0]]), torch.tensor([[2.0, 3.0]])
+        >>> out = composite(colors, densities, t0, t1, background=torch.tensor([0.0, 0.0, 1.0]))
+        >>> out.rgb, out.opacity, out.depth
+        (tensor([[1., 0., 0.]]), tensor([1.]), tensor([1.5000]))
+        >>> composite(colors, torch.zeros(1, 2), t0, t1, background=torch.tensor([0.0, 0.0, 1.0])).rgb  # empty ray: the background
+        tensor([[0., 0., 1.]])
     """
     if colors.shape[:-1] != densities.shape:
         raise ValueError(f"colors (..., S, C) and densities (..., S) disagree: {tuple(colors.shape)} vs {tuple(densities.shape)}")
@@ -140,6 +158,11 @@ def over(front: _HasLayer, back: _HasLayer) -> Layer:
 
     ``rgb = rgb_f + (1 - a_f) rgb_b`` and ``a = a_f + (1 - a_f) a_b``. Any objects with ``rgb``
     ``(..., C)`` and ``opacity`` ``(...)`` work, e.g. a background-free :class:`Composite`.
+
+    Example:
+        >>> front = Layer(torch.tensor([0.5, 0.0, 0.0]), torch.tensor(0.5))  # half-transparent red, premultiplied
+        >>> over(front, Layer.opaque(torch.tensor([0.0, 0.0, 1.0])))
+        Layer(rgb=tensor([0.5000, 0.0000, 0.5000]), opacity=tensor(1.))
     """
     keep = 1.0 - front.opacity
     return Layer(front.rgb + keep[..., None] * back.rgb, front.opacity + keep * back.opacity)

@@ -33,6 +33,13 @@ class PositionalEncoding(Encoding):
         in_dim: Input dimension (3 for points and directions).
         n_frequencies: Number of octaves ``L``; frequencies ``2^0 .. 2^(L-1)`` (radians per unit).
         include_input: Prepend the raw input, as NeRF does.
+
+    Example:
+        >>> pe = PositionalEncoding(3, 10)  # AD-NeRF's positions: x and sin / cos of 10 octaves
+        >>> pe.out_dim
+        63
+        >>> pe(torch.zeros(2, 3))[0, :6]  # x itself, then sin(x) = 0
+        tensor([0., 0., 0., 0., 0., 0.])
     """
 
     def __init__(self, in_dim: int = 3, n_frequencies: int = 10, include_input: bool = True) -> None:

@@ -1,16 +1,13 @@
-"""Conditional radiance fields ``F(a, d, x) -> (rgb, density)`` and the head / torso fields.
+"""Conditional radiance fields ``F(a, d, x) -> (rgb, density)``.
 
 A :class:`RadianceField` is an encoding of positions (plug-in), an optional encoding of view
 directions, an MLP, and a conditioning vector (the audio code, and for the torso the head pose)
 concatenated to the encoded position at the input and at the skip layers, as in AD-NeRF.
 
-* :class:`HeadField` evaluates in the head's canonical space: camera-space samples are warped by
-  the inverse head pose before the field sees them.
-* :class:`TorsoField` evaluates in camera space and takes the head pose as an extra input.
-
-Both are configurations of the same :class:`RadianceField`; :func:`paper_config` builds the
-paper-faithful 8x256 MLP with a skip at layer 4 and a view branch, :func:`fast_config` a tri-plane
-grid with a small MLP.
+The field knows no space and no pose: a :class:`~adnerf.model.layers.RadianceLayer` places it
+(the head layer in the head's canonical space, the torso layer in camera space) and builds its
+conditioning vector from the frame's signals. :func:`paper_config` builds the paper-faithful 8x256
+MLP with a skip at layer 4 and a view branch, :func:`fast_config` a tri-plane grid with a small MLP.
 """
 
 from __future__ import annotations
@@ -23,9 +20,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .encodings import Encoding, PositionalEncoding, TriPlaneEncoding
-from .pose import HeadPose, directions_to_canonical
 
-__all__ = ["FieldConfig", "FieldOutput", "HeadField", "RadianceField", "SampleRows", "TorsoField", "fast_config", "paper_config"]
+__all__ = ["FieldConfig", "FieldOutput", "RadianceField", "SampleRows", "fast_config", "paper_config"]
 
 POSE_CODE_DIM = 9
 
@@ -253,64 +249,3 @@ class RadianceField(nn.Module):
             h = F.relu(self.view_layer(torch.cat([self.feature(h), d], dim=-1)))
         rgb = torch.sigmoid(self.rgb_head(h))
         return FieldOutput(rgb=rgb, density=density)
-
-
-class HeadField(nn.Module):
-    """The head: an audio-conditioned field evaluated in the head's canonical space.
-
-    Args:
-        config: Field architecture; ``cond_dim`` is the audio code width (0: silent head).
-    """
-
-    def __init__(self, config: FieldConfig) -> None:
-        super().__init__()
-        self.field = RadianceField(config)
-
-    def forward(self, positions: Tensor, directions: Tensor, *, pose: HeadPose, audio: Tensor | None = None) -> FieldOutput:
-        """Evaluate at camera-space samples.
-
-        Args:
-            positions: Camera-space points ``(..., 3)``.
-            directions: Camera-space unit directions ``(..., 3)``.
-            pose: Head pose (canonical to camera) broadcastable against the points, usually one
-                frame's ``R (3, 3)``, ``t (3,)``.
-            audio: Audio code ``(cond_dim,)`` or ``(..., cond_dim)``.
-
-        Returns:
-            :class:`FieldOutput` at the points.
-        """
-        canonical = pose.to_canonical(positions.to(pose.R))
-        dirs = directions_to_canonical(directions.to(pose.R), pose.R)
-        param = next(self.parameters())
-        return self.field(canonical.to(param.dtype), dirs.to(param.dtype), audio)
-
-
-class TorsoField(nn.Module):
-    """The torso: a field in camera space conditioned on audio and on the head pose.
-
-    The head pose enters as its 9-d continuous code (:meth:`HeadPose.code`), so the torso can
-    follow the head's motion without being warped rigidly with it.
-
-    Args:
-        config: Field architecture; ``cond_dim`` must equal the audio code width plus 9.
-        audio_dim: Width of the audio code part of the condition (0: pose only).
-    """
-
-    def __init__(self, config: FieldConfig, audio_dim: int = 64) -> None:
-        super().__init__()
-        if config.cond_dim != audio_dim + POSE_CODE_DIM:
-            raise ValueError(f"a torso field's cond_dim must be audio_dim + {POSE_CODE_DIM} = {audio_dim + POSE_CODE_DIM}; got {config.cond_dim}")
-        self.audio_dim = audio_dim
-        self.field = RadianceField(config)
-
-    def forward(self, positions: Tensor, directions: Tensor, *, pose: HeadPose, audio: Tensor | None = None) -> FieldOutput:
-        """Evaluate at camera-space samples (same arguments as :meth:`HeadField.forward`)."""
-        param = next(self.parameters())
-        code = pose.code().to(param.dtype)
-        if self.audio_dim:
-            if audio is None:
-                raise ValueError("this torso field is audio-conditioned but no audio code was given")
-            a = audio.to(param.dtype)
-            batch = torch.broadcast_shapes(a.shape[:-1], code.shape[:-1])
-            code = torch.cat([a.expand(*batch, a.shape[-1]), code.expand(*batch, POSE_CODE_DIM)], dim=-1)
-        return self.field(positions.to(param.dtype), directions.to(param.dtype), code)

@@ -52,6 +52,15 @@ def to_canonical(points: Tensor, R: Tensor, t: Tensor) -> Tensor:
 
     Returns:
         Canonical points, shape ``(..., 3)`` (the broadcast batch shape).
+
+    Example:
+        >>> R = euler_rotation(0.3, 0.1, 0.0, like=torch.zeros((), dtype=torch.float64))
+        >>> t = torch.tensor([0.0, 0.1, 2.0], dtype=torch.float64)
+        >>> to_canonical(t, R, t)  # the head's position is its canonical origin
+        tensor([0., 0., 0.], dtype=torch.float64)
+        >>> x = torch.tensor([[0.1, -0.2, 0.3]], dtype=torch.float64)
+        >>> torch.allclose(from_canonical(to_canonical(x, R, t), R, t), x)
+        True
     """
     _check(points, R, t)
     return torch.einsum("...ji,...j->...i", R, points - t)
@@ -67,6 +76,11 @@ def from_canonical(points: Tensor, R: Tensor, t: Tensor) -> Tensor:
 
     Returns:
         Camera-space points, shape ``(..., 3)``.
+
+    Example:
+        >>> R = euler_rotation(0.5 * torch.pi, 0.0, 0.0, like=torch.zeros((), dtype=torch.float64))
+        >>> from_canonical(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), R, torch.zeros(3, dtype=torch.float64)).round(decimals=6)
+        tensor([ 0.,  0., -1.], dtype=torch.float64)
     """
     _check(points, R, t)
     return torch.einsum("...ij,...j->...i", R, points) + t
@@ -89,6 +103,11 @@ def rotation_angle(R: Tensor) -> Tensor:
 
     Uses ``atan2(|axis * sin|, cos)`` from the skew and trace parts, which stays accurate near 0
     and near pi where ``arccos((tr - 1) / 2)`` loses half the digits.
+
+    Example:
+        >>> R = euler_rotation(0.0, 0.0, 3.14159, like=torch.zeros((), dtype=torch.float64))
+        >>> round(float(rotation_angle(R)), 5)
+        3.14159
     """
     skew = torch.stack(
         [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], dim=-1
@@ -172,6 +191,14 @@ def perturb_pose(
 
     Returns:
         ``(R', t')`` with the shapes of ``R`` and ``t``.
+
+    Example:
+        >>> R, t = torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
+        >>> R2, t2 = perturb_pose(R, t, yaw=0.2)
+        >>> t2  # turned about its own centre: the head stays where it was
+        tensor([0., 0., 3.], dtype=torch.float64)
+        >>> round(float(rotation_angle(R2)), 6)
+        0.2
     """
     D = euler_rotation(yaw, pitch, roll, like=R)
     c = t if center is None else from_canonical(center.to(t), R, t)
@@ -228,7 +255,13 @@ class HeadPose:
         return Se3(So3.from_matrix(self.R), self.t)
 
     def inverse(self) -> "HeadPose":
-        """Camera-to-canonical pose ``(R^T, -R^T t)``."""
+        """Camera-to-canonical pose ``(R^T, -R^T t)``.
+
+        Example:
+            >>> p = HeadPose(euler_rotation(0.3, 0.2, 0.1, like=torch.zeros((), dtype=torch.float64)), torch.tensor([0.1, 0.2, 3.0], dtype=torch.float64))
+            >>> torch.allclose(p.compose(p.inverse()).matrix(), torch.eye(4, dtype=torch.float64))
+            True
+        """
         Rt = self.R.transpose(-1, -2)
         return HeadPose(Rt, -torch.einsum("...ij,...j->...i", Rt, self.t))
 
@@ -253,6 +286,12 @@ class HeadPose:
 
         The 6-D rotation representation is continuous (unlike Euler angles or quaternions with
         sign flips), which makes it a good conditioning input for the torso field.
+
+        Example:
+            >>> HeadPose.identity(5).code().shape
+            torch.Size([5, 9])
+            >>> HeadPose.identity().code()
+            tensor([1., 0., 0., 0., 1., 0., 0., 0., 0.], dtype=torch.float64)
         """
         return torch.cat([self.R[..., :, 0], self.R[..., :, 1], self.t], dim=-1)
 

@@ -71,6 +71,13 @@ class RayBundle:
 
         Returns:
             Points of shape ``(..., S, 3)``.
+
+        Example:
+            >>> rays = RayBundle(torch.zeros(2, 3), torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]))
+            >>> rays.at(torch.tensor([[2.0], [3.0]]))  # one distance (S = 1) along each ray
+            tensor([[[0., 0., 2.]],
+            <BLANKLINE>
+                    [[3., 0., 0.]]])
         """
         return self.origins[..., None, :] + t[..., :, None] * self.directions[..., None, :]
 

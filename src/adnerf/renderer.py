@@ -1,9 +1,10 @@
 """The volume renderer: sampler + field + compositor, composed; it does not own the field.
 
 A *field* is any callable ``field(positions, directions, **conditioning) -> FieldOutput`` with
-positions and directions of shape ``(..., 3)`` (a :class:`~adnerf.fields.HeadField`, a
-:class:`~adnerf.fields.TorsoField`, a bare :class:`~adnerf.fields.RadianceField` or an analytic
-function). The conditioning (audio code, head pose, ...) is passed to :meth:`VolumeRenderer.render_rays`
+positions and directions of shape ``(..., 3)`` (a :class:`~adnerf.fields.RadianceField`, an
+analytic scene of :mod:`adnerf.analytic`, or any function). A
+:class:`~adnerf.model.layers.RadianceLayer` builds one renderer per layer and moves the rays into
+the layer's space before calling it. The conditioning (audio code, head pose, ...) is passed to :meth:`VolumeRenderer.render_rays`
 as keyword arguments and forwarded to every field call. A value shared by all rays (per-frame
 conditioning, the AD-NeRF setting) is forwarded unchanged and must broadcast against any batch of
 points; a value wrapped in :class:`PerRay` differs between rays (rays of several frames rendered in
@@ -181,6 +182,17 @@ class VolumeRenderer:
 
         Returns:
             A :class:`RenderOutput`.
+
+        Example:
+            >>> from adnerf.analytic import UniformSphere
+            >>> from adnerf.cameras import intrinsics_matrix, pixel_rays
+            >>> from adnerf.samplers import NearFarBounds
+            >>> sphere = UniformSphere(torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), 1.0, 10.0)
+            >>> rays = pixel_rays(intrinsics_matrix(16.0, 16.0, 8.0, 8.0), 16, 16)
+            >>> out = VolumeRenderer(NearFarBounds(1.0, 5.0), n_coarse=64, n_fine=64).render_rays(rays, sphere)
+            >>> opacity, depth, hit = sphere.truth(rays.origins, rays.directions)  # closed form
+            >>> bool((out.final.opacity - opacity).abs().max() < 0.01), bool((out.final.depth - depth)[hit].abs().max() < 0.01)
+            (True, True)
         """
         coarse_samples = self.coarse_sampler(rays, jitter=jitter, generator=generator)
         rgb, density, n_eval = evaluate_field(field, coarse_samples, occupancy, conditioning)

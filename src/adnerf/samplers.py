@@ -46,6 +46,12 @@ def ray_aabb(origins: Tensor, directions: Tensor, aabb_min: Tensor, aabb_max: Te
     Returns:
         ``(near, far, hit)``, each of shape ``(...)``. Rays that miss (or whose hit lies wholly
         behind ``near_min``) get ``near == far`` (finite) and ``hit == False``.
+
+    Example:
+        >>> o, d = torch.zeros(1, 3, dtype=torch.float64), torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+        >>> lo, hi = torch.tensor([-1.0, -1.0, 2.0], dtype=torch.float64), torch.tensor([1.0, 1.0, 4.0], dtype=torch.float64)
+        >>> ray_aabb(o, d, lo, hi)
+        (tensor([2.], dtype=torch.float64), tensor([4.], dtype=torch.float64), tensor([True]))
     """
     lo = aabb_min.to(origins)
     hi = aabb_max.to(origins)
@@ -81,6 +87,12 @@ def ray_sphere(origins: Tensor, directions: Tensor, center: Tensor, radius: floa
 
     Returns:
         ``(near, far, hit)`` of shape ``(...)``; misses get ``near == far`` and ``hit == False``.
+
+    Example:
+        >>> o, d = torch.zeros(2, 3, dtype=torch.float64), torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
+        >>> near, far, hit = ray_sphere(o, d, torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), 1.0)
+        >>> near[0].item(), far[0].item(), hit.tolist()
+        (2.0, 4.0, [True, False])
     """
     oc = center.to(origins) - origins
     t_closest = (oc * directions).sum(dim=-1)
@@ -139,7 +151,9 @@ class PosedAABBBounds:
 
     A box point ``p`` sits at ``R p + t`` in the rays' frame. Rays are moved into the box frame
     with the inverse transform; a rigid map keeps distances, so the ``t`` values found there are the
-    ``t`` values of the original rays.
+    ``t`` values of the original rays. (A :class:`~adnerf.model.layers.RadianceLayer` moves its
+    rays into the box frame once for all of its passes instead; this per-call form is the
+    reference its crossing is tested against.)
 
     Attributes:
         aabb_min: Box minimum in the box frame ``(3,)``.
@@ -194,6 +208,10 @@ def stratified_edges(near: Tensor, far: Tensor, n_samples: int, *, jitter: bool 
 
     Returns:
         Boundaries of shape ``(..., S + 1)``.
+
+    Example:
+        >>> stratified_edges(torch.tensor([1.0]), torch.tensor([2.0]), 4)
+        tensor([[1.0000, 1.2500, 1.5000, 1.7500, 2.0000]])
     """
     if n_samples < 1:
         raise ValueError(f"n_samples must be >= 1; got {n_samples}")
@@ -225,6 +243,11 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, deterministic: boo
     Returns:
         Sorted positions inside ``[bins[..., 0], bins[..., -1]]``, shape ``(..., n_samples)``,
         detached from the graph.
+
+    Example:
+        >>> bins = torch.tensor([[0.0, 1.0, 2.0, 3.0]])
+        >>> sample_pdf(bins, torch.tensor([[0.0, 1.0, 0.0]]), 4, deterministic=True)  # all weight in [1, 2], at its quantiles
+        tensor([[1.1250, 1.3750, 1.6250, 1.8750]])
     """
     if bins.shape[-1] != weights.shape[-1] + 1:
         raise ValueError(f"bins (..., B+1) and weights (..., B) disagree: {tuple(bins.shape)} vs {tuple(weights.shape)}")
@@ -282,6 +305,13 @@ class StratifiedSampler:
     Attributes:
         n_samples: Intervals per ray.
         bounds: Where to sample (a :class:`Bounds`).
+
+    Example:
+        >>> from adnerf.cameras import intrinsics_matrix, pixel_rays
+        >>> rays = pixel_rays(intrinsics_matrix(8.0, 8.0, 4.0, 4.0), 8, 8)
+        >>> samples = StratifiedSampler(16, NearFarBounds(1.0, 3.0))(rays)
+        >>> samples.t_starts.shape, samples.positions().shape
+        (torch.Size([8, 8, 16]), torch.Size([8, 8, 16, 3]))
     """
 
     n_samples: int

@@ -185,8 +185,8 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
         train_samples_per_s = tr.samples / max(tr.elapsed["head"], 1e-9)
 
         # Head frames per second at the dataset size: one untimed frame, then up to 24 frames or
-        # 10 s (the 3 frames of earlier versions took 0.3 s of the fast head: too short on a
-        # machine whose speed varies from one moment to the next).
+        # 10 s (a few frames take a fraction of a second: too short on a machine whose speed
+        # varies from one moment to the next).
         model = tr.model.eval()
         plate = tr.plate.reshape(tr.camera.height, tr.camera.width, 3)
         frames = [f for f, _ in evalset] or ds.meta.train[:1]

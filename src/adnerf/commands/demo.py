@@ -28,9 +28,8 @@ from .render_video import render_frames
 __all__ = ["DEMO_SYNTH", "DEMO_TRAIN", "check_reused_scene", "contact_sheet", "run_demo"]
 
 # 30 s rather than the synthesiser's 18 s: the audio encoder learns the jaw from the training
-# frames' speech alone, and more of it generalises better. Measured on the stage-1 head alone with
-# the same 3600 iterations: held-out mouth crop 24.6 -> 25.9 dB, head 28.0 -> 29.3 dB, while the
-# training frames' stayed at 27.4 / 30.8 dB. The last 10% (3 s, 75 frames) is held out.
+# frames' speech alone, and more of it generalises better (docs/decisions.md). The last 10%
+# (3 s, 75 frames) is held out.
 DEMO_SYNTH = SynthConfig(seconds=30.0, test_fraction=0.1)
 DEMO_TRAIN = TrainConfig()
 DEMO_YAW = 15.0

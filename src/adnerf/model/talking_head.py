@@ -100,9 +100,9 @@ class ModelConfig:
         audio_dim: Audio code width (paper: 64).
         att_len: Frames the audio attention looks at (paper: 8).
         att_centre_logit: Initial extra score of the frame itself in AudioAttNet (0: the
-            paper's near-uniform start; see :class:`~adnerf.audio.AudioAttNet`). Measured on the
-            demo scene's held-out head rays: with 0, switching the filter on at 60% of training
-            dropped the PSNR from 32.3 to 29.5 dB for good; with 4 it rose to 34.1 dB.
+            paper's near-uniform start; see :class:`~adnerf.audio.AudioAttNet`): a start that
+            favours the frame itself, so switching the filter on mid-training does not blur the
+            codes (``docs/decisions.md``).
         head_samples: ``(coarse, fine)`` samples per ray for the head.
         torso_samples: ``(coarse, fine)`` samples per ray for the torso.
         occupancy_resolution: Cells per axis of each layer's occupancy grid (head: canonical
@@ -202,8 +202,8 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
     head_fine = FieldConfig.from_dict({**head.to_dict(), "grid_max_resolution": 256, "grid_levels": 4})
     torso = fast_config(torso_cond, *meta.torso_aabb)
     torso_coarse = FieldConfig.from_dict({**torso.to_dict(), "grid_max_resolution": 64, "width": 32})
-    # A 128 rather than 256 finest torso grid: held-out torso 24.1 -> 24.8 dB after 4500 iterations
-    # on the demo scene at the same speed (512: 23.1 dB at 2500 iterations, 40% slower).
+    # The torso's finest grid is coarser than the head's (128, not 256): it learns a smooth body
+    # faster (docs/decisions.md).
     torso_fine = FieldConfig.from_dict({**torso.to_dict(), "grid_max_resolution": 128})
     return ModelConfig(
         feature_dim=meta.feature_dim,

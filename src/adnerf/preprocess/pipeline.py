@@ -626,7 +626,7 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
     from .headpose import chain_segments, smooth_poses
 
     # The parser's labels: the pose needs the rigid upper head (its box seeds the ellipsoid), not
-    # the jaw-line layers (with them the 256 px check's median rotation error rose 0.92 -> 1.00 deg).
+    # the jaw-line layers, which reach down the jaw that moves with the speech.
     frames, labels = work.load("frames"), work.load("parsing")
     info = work.load_json("decode")
     K = _intrinsics(config, info)
