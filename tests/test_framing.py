@@ -78,7 +78,7 @@ def test_preprocess_crops_a_wide_shot_to_the_person_and_the_camera_follows(webca
     out = tmp_path / "data"
     assert main(["preprocess", str(wide), "-o", str(out), "--crop", "60,30,96,96", "--size", "0", "--focal", str(truth["intrinsics"][0]), "--start", "0.4", "--end", "2.8", "--test-fraction", "0.2"]) == 0
     meta = json.loads((out / "meta.json").read_text())
-    assert meta["framing"] == {"source_size": [200, 150], "crop": [60, 30, 96, 96], "size": [96, 96], "start_s": 0.4}
+    assert meta["framing"] == {"source_size": [200, 150], "crop": [60, 30, 96, 96], "size": [96, 96], "start_s": 0.4, "video": str(wide.resolve())}
     # the camera of the crop is the scene's own: focal kept, principal point moved by the crop
     np.testing.assert_allclose(meta["intrinsics"], [truth["intrinsics"][0], truth["intrinsics"][1], 100 - 60, 75 - 30])
     assert meta["n_frames"] == 60  # 0.4 s to 2.8 s at 25 fps

@@ -496,7 +496,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     if not args.output.endswith(".mp4"):
         raise CliError(f"{args.output}: the output must be an .mp4 file")
-    inputs = [args.audio, args.poses, args.features, args.background, None if args.blink in ("auto", "none") else args.blink, *(a.file for a in (args.yaw, args.pitch, args.roll) if a.file is not None)]
+    inputs = [args.audio, args.poses, args.features, args.background, args.source, args.still_frame, None if args.blink in ("auto", "none") else args.blink, *(a.file for a in (args.yaw, args.pitch, args.roll) if a.file is not None)]
     check_render_outputs(args.output, args.frames, inputs=inputs, overwrite=args.overwrite)  # before loading and rendering
     run = load_run(args.run, _device(args.device))
     bars: list[tqdm] = []  # opened at the first frame, so a refused input prints no bar
@@ -523,12 +523,16 @@ def _cmd_render(args: argparse.Namespace) -> int:
             blink=args.blink,
             overwrite=args.overwrite,
             progress=tick,
+            paste_back=args.paste_back,
+            source=args.source,
+            still_frame=args.still_frame,
         )
     finally:
         for bar in bars:
             bar.close()
     blinks = "" if summary["blinks"] is None else f", {summary['blinks']} blinks"
-    print(f"{summary['output']}: {summary['frames']} frames, {summary['audio_seconds']:.2f} s{blinks}, rendered at {summary['render_fps']:.2f} frames/s")
+    pasted = f" ({summary['size'][0]}x{summary['size'][1]}, pasted back into the source frames)" if summary["pasted_back"] else ""
+    print(f"{summary['output']}: {summary['frames']} frames{pasted}, {summary['audio_seconds']:.2f} s{blinks}, rendered at {summary['render_fps']:.2f} frames/s")
     return 0
 
 
@@ -700,7 +704,7 @@ def build_parser() -> argparse.ArgumentParser:
     pre = sub.add_parser("preprocess", help="turn a static-camera talking-head video into a dataset (parsing, head pose, plate)")
     pre.add_argument("video", help="video file with an audio track")
     pre.add_argument("-o", "--output", required=True, help="dataset folder to create")
-    pre.add_argument("--parser", default="classical", help="face parser: classical (default, needs no weights), mediapipe (opt-in install, see README) or bisenet:CHECKPOINT (your 19-class face-parsing BiSeNet .pth, e.g. the 79999_iter.pth AD-NeRF uses)")
+    pre.add_argument("--parser", default="classical", help="face parser: classical (default, needs no weights), mediapipe (opt-in install, see docs/preprocessing.md) or bisenet:CHECKPOINT (your 19-class face-parsing BiSeNet .pth, e.g. the 79999_iter.pth AD-NeRF uses)")
     pre.add_argument("--features", choices=("logmel", "phonemes", "none"), default="logmel", help="audio features (none: silent dataset, allowed without audio)")
     pre.add_argument("--face", default="dlib", help="face box and 68 landmarks: dlib (default; HOG detector and the 68-point model of the face-recognition-models package), dlib:PREDICTOR.dat (your own 68-point model) or none")
     pre.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
@@ -765,7 +769,10 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--features", default=None, help=".npy of precomputed feature windows (M, 16, D) for the audio, one per frame (e.g. AD-NeRF's DeepSpeech aud.npy); required for runs trained on imported DeepSpeech features")
     rn.add_argument("--background", default=None, help="replacement background image")
     rn.add_argument("--blink", default="auto", metavar="auto|none|FILE.npy", help="eye openness for runs trained with eyes (datasets with eye.npy): auto plays natural blinks (one every 2-6 s, 0.2 s long), none keeps the eyes open, a .npy gives one value per frame (1 open, 0 closed)")
-    rn.add_argument("--frames", default=None, help="also write the frames as PNGs (000000.png, ...) into this folder; never inside a dataset or run")
+    rn.add_argument("--frames", default=None, help="also write the rendered squares as PNGs (000000.png, ...) into this folder; never inside a dataset or run")
+    rn.add_argument("--paste-back", action=argparse.BooleanOptionalAction, default=None, help="paste the render back into the source video's full frames, at its size (default: when the dataset was cropped from a larger video and that video is at hand; --no-paste-back writes the square)")
+    rn.add_argument("--source", default=None, metavar="VIDEO", help="with paste-back: the video the dataset was made from, when it has moved since preprocessing")
+    rn.add_argument("--frame", dest="still_frame", default=None, metavar="IMAGE", help="with paste-back: paste every rendered square into this full-size image instead of the source video's frames")
     rn.add_argument("--overwrite", action="store_true", help="replace an existing output .mp4 and existing frame PNGs (never an input)")
     rn.add_argument("--device", default="cpu", help="cpu or cuda")
     rn.add_argument("-o", "--output", required=True, help="output .mp4")

@@ -32,7 +32,7 @@ import numpy as np
 from .atomic import atomic_path
 from .memory import require
 
-__all__ = ["AudioTrack", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "read_audio", "read_video", "write_video"]
+__all__ = ["AudioTrack", "FrameReader", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "read_audio", "read_video", "write_video"]
 
 
 class MediaError(RuntimeError):
@@ -168,6 +168,86 @@ def frame_times(path: str | Path) -> np.ndarray:
     if not times:
         raise MediaError(f"{p}: the video stream has no frames")
     return np.sort(np.asarray(times, dtype=np.float64))
+
+
+class FrameReader:
+    """A video's upright frames by index, in any order, decoded a chunk at a time.
+
+    Frames are numbered in presentation order (as :func:`frame_times` lists them). Reading frame
+    ``i`` decodes the chunk of ``chunk`` frames that holds it (seeking to the keyframe before the
+    chunk) and keeps that chunk, so frames read forwards or backwards (a ping-pong through the
+    clip) cost about one decode each, and at most ``chunk`` frames are held: a 1080p clip of any
+    length is read in a few hundred megabytes.
+
+    Args:
+        path: The video file.
+        chunk: Frames decoded and held together.
+
+    Raises:
+        MediaError: The file is missing or unreadable, has no video stream, or a frame does not
+            decode.
+    """
+
+    def __init__(self, path: str | Path, chunk: int = 32) -> None:
+        if chunk < 1:
+            raise ValueError(f"chunk must be >= 1; got {chunk}")
+        self.path = Path(path)
+        self.times = frame_times(self.path)
+        self.chunk = int(chunk)
+        self._container = _open(self.path)
+        self._stream = _video_stream(self.path, self._container)
+        self._turns: int | None = None
+        self._held: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def __enter__(self) -> "FrameReader":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file."""
+        self._container.close()
+        self._held = {}
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        """Frame ``index`` (uint8 RGB ``(H, W, 3)``, upright)."""
+        n = len(self.times)
+        if not -n <= index < n:
+            raise IndexError(f"{self.path}: frame {index} of {n}")
+        index %= n
+        if index not in self._held:
+            self._load(index // self.chunk)
+        return self._held[index]
+
+    def _load(self, c: int) -> None:
+        av = _av()
+        lo, hi = c * self.chunk, min((c + 1) * self.chunk, len(self.times))
+        self._held = {}
+        stream = self._stream
+        step = float(np.median(np.diff(self.times))) if len(self.times) > 1 else 1.0
+        try:
+            self._container.seek(int(np.floor(self.times[lo] / stream.time_base)), stream=stream, backward=True, any_frame=False)
+            for frame in self._container.decode(stream):
+                if frame.time is None:
+                    continue
+                k = int(np.searchsorted(self.times, float(frame.time) - 0.25 * step))
+                if k < lo:
+                    continue
+                if k >= hi:
+                    break
+                if self._turns is None:
+                    self._turns = _upright_turns(self.path, getattr(frame, "rotation", 0) or 0)
+                rgb = frame.to_ndarray(format="rgb24")
+                self._held[k] = np.ascontiguousarray(np.rot90(rgb, -self._turns)) if self._turns else rgb
+        except av.error.FFmpegError as exc:
+            raise MediaError(f"{self.path}: cannot decode frames {lo}-{hi - 1} ({exc.strerror or exc})") from exc
+        missing = [k for k in range(lo, hi) if k not in self._held]
+        if missing:
+            raise MediaError(f"{self.path}: frames {missing[0]}-{missing[-1]} did not decode")
 
 
 def _decode_audio(path: Path, container, sample_rate: int | None, *, partial: list[str] | None = None) -> AudioTrack:

@@ -36,6 +36,8 @@ from ..model.talking_head import FrameRender, render_frame
 from ..lock import writes_folder
 from ..outputs import check_file_output, check_frames_folder
 from ..pose import HeadPose
+from ..preprocess.framing import Framing
+from .paste_back import PasteBackError, paste_back_frames, source_frames_of_dataset, write_pasted
 from .pose_edits import AngleTrack, angle_tracks, check_pose_range, edit_poses, parse_angle
 
 __all__ = ["RenderError", "check_render_outputs", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
@@ -77,6 +79,82 @@ def load_background(path: str | Path, height: int, width: int) -> np.ndarray:
         ch = int(round(w / target))
         img = img[(h - ch) // 2 : (h - ch) // 2 + ch]
     return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+
+
+@dataclass
+class PastePlan:
+    """Where a render's squares go back (:mod:`adnerf.commands.paste_back`).
+
+    Attributes:
+        framing: The dataset's framing (a crop, scaled).
+        video: The source video whose frames the squares are pasted into (``None`` with ``still``).
+        still: One full-size uint8 image ``(H, W, 3)`` to paste every square into instead.
+        plate: The background behind the render, ``(h, w, 3)`` float in [0, 1], when a full-size
+            ``--background`` replaces the whole frame (its crop, scaled); ``None``: as usual.
+    """
+
+    framing: Framing
+    video: Path | None
+    still: np.ndarray | None = None
+    plate: np.ndarray | None = None
+
+
+def _read_rgb(path: str | Path, what: str) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise RenderError(f"{path}: missing or unreadable image ({what})")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def plan_paste_back(meta: dict, paste_back: bool | None, *, source: str | Path | None = None, still_frame: str | Path | None = None, background: str | Path | None = None) -> PastePlan | None:
+    """Decide, before any rendering, whether and into what the render is pasted back.
+
+    Args:
+        meta: The run's dataset metadata (its ``framing``, when preprocessing cropped the frames).
+        paste_back: ``True`` asks for it, ``False`` refuses it, ``None`` (the default of ``render``)
+            pastes back when the dataset was cropped and its source frames are at hand (else the
+            square is written, with a warning).
+        source: The source video, when it has moved since preprocessing.
+        still_frame: A full-size image to paste every square into, instead of the source frames.
+        background: ``--background``: an image of the source's size replaces the whole frame;
+            any other size covers the square only.
+
+    Raises:
+        RenderError: Paste-back asked for and impossible: the dataset was not cropped, the source
+            video is missing, or an image is not the source's size.
+    """
+    framing = Framing.from_dict(meta["framing"]) if meta.get("framing") else None
+    asked = paste_back is True or source is not None or still_frame is not None
+    if paste_back is False:
+        if asked and (source is not None or still_frame is not None):
+            raise RenderError("--source and --frame paste the render back into full frames: they cannot go with --no-paste-back")
+        return None
+    if framing is None or not framing.cropped:
+        if asked:
+            raise RenderError("this run's dataset was not cropped from a larger video (no framing in its meta.json): its renders already have the video's size")
+        return None
+    W, H = framing.source_size
+    still = None
+    if still_frame is not None:
+        still = _read_rgb(still_frame, "--frame")
+        if (still.shape[1], still.shape[0]) != (W, H):
+            raise RenderError(f"{still_frame}: a --frame image must have the source video's size, {W}x{H}; got {still.shape[1]}x{still.shape[0]}")
+    plate = None
+    if background is not None:
+        full = _read_rgb(background, "--background")
+        if (full.shape[1], full.shape[0]) == (W, H):
+            still = full if still is None else still
+            plate = framing.transform(full).astype(np.float32) / 255.0
+    video = None
+    if still is None:
+        video = Path(source) if source is not None else (Path(framing.video) if framing.video else None)
+        if video is None or not video.is_file():
+            where = "the dataset does not record its source video" if video is None else f"{video}: no such file"
+            if paste_back is None:
+                warnings.warn(f"the render is not pasted back into the full frames ({where}): writing the {framing.size[0]}x{framing.size[1]} square; --source VIDEO gives the video")
+                return None
+            raise RenderError(f"--paste-back: {where}; give the video the dataset was made from with --source VIDEO, or a still frame with --frame IMAGE")
+    return PastePlan(framing, video, still, plate)
 
 
 def pingpong(poses: np.ndarray, n: int) -> np.ndarray:
@@ -244,8 +322,15 @@ def render_audio_video(
     blink: str | Path = "auto",
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    paste_back: bool | None = None,
+    source: str | Path | None = None,
+    still_frame: str | Path | None = None,
 ) -> dict:
     """Render the run saying the audio of ``audio_path`` and write an mp4 with that audio.
+
+    A run whose dataset was cropped from a larger video is pasted back into the source's full
+    frames by default (:func:`plan_paste_back`; ``paste_back`` ``False`` writes the square,
+    ``source`` names a moved video, ``still_frame`` a full-size image to paste into).
 
     ``yaw``, ``pitch`` and ``roll`` are each degrees, a ``.npy`` of one angle per frame or
     ``sway:AMPLITUDE,PERIOD`` (:func:`~adnerf.commands.pose_edits.parse_angle`). The poses to render
@@ -278,7 +363,8 @@ def render_audio_video(
         raise RenderError(str(exc)) from exc
     blink_file = None if str(blink) in ("auto", "none") else blink
     track_files = [t.file for t in tracks.values() if t.file is not None]
-    check_render_outputs(out, frames_dir, inputs=[audio_path, poses_file, features, background, blink_file, *track_files], overwrite=overwrite)
+    check_render_outputs(out, frames_dir, inputs=[audio_path, poses_file, features, background, blink_file, source, still_frame, *track_files], overwrite=overwrite)
+    plan = plan_paste_back(run.meta, paste_back, source=source, still_frame=still_frame, background=background)
     if blink_file is not None and not run.model.reads_eye:
         raise RenderError(f"--blink {blink}: this run's head has no eye condition (it was trained on a dataset without eye.npy), so it cannot blink on command")
     try:
@@ -319,7 +405,9 @@ def render_audio_video(
             hint = "" if from_dataset is not None else " (the run's training dataset has moved or gone: take poses from a dataset with --from DATASET, or give them with --poses FILE.npy)"
             raise RenderError(f"{source}: no poses.npy to take poses from{hint}")
         poses = pingpong(_checked_poses(np.load(source / "poses.npy"), str(source / "poses.npy")), n)
-    if background is not None:
+    if plan is not None and plan.plate is not None:
+        plate = plan.plate
+    elif background is not None:
         plate = load_background(background, meta["height"], meta["width"])
     else:
         plate = load_background(run.root / "background.png", meta["height"], meta["width"])
@@ -332,12 +420,24 @@ def render_audio_video(
         pose_warning = check_pose_range(run.pose_range, edit_poses(poses, angles), strict=strict_pose)
     except ValueError as exc:  # a bad track file, a sway without a range, PoseRangeError
         raise RenderError(str(exc)) from exc
+    source_index = None
+    if plan is not None and plan.still is None:
+        try:  # before rendering: a wrong video fails fast
+            source_index = source_frames_of_dataset(plan.framing, plan.video, int(meta["n_frames"]), float(meta["fps"]))
+        except PasteBackError as exc:
+            raise RenderError(str(exc)) from exc
+        source_index = source_index[pingpong(np.arange(len(source_index)), n)]
     clip = render_frames(run, windows, poses, plate, yaw=angles[:, 0], pitch=angles[:, 1], roll=angles[:, 2], eye=eye, progress=progress)
-    write_video(out, clip.frames, meta["fps"], AudioTrack(audio.samples, audio.sample_rate, 0.0))
+    track = AudioTrack(audio.samples, audio.sample_rate, 0.0)
+    if plan is None:
+        write_video(out, clip.frames, meta["fps"], track)
+    else:
+        write_pasted(out, paste_back_frames(clip.frames, plan.framing, video=plan.video, source_index=source_index, still=plan.still), meta["fps"], track)
     if frames_dir is not None:
         d = Path(frames_dir)
         d.mkdir(parents=True, exist_ok=True)
         for name, f in zip(frame_names(n), clip.frames):
             if not cv2.imwrite(str(d / name), cv2.cvtColor(f, cv2.COLOR_RGB2BGR)):
                 raise RenderError(f"{d / name}: could not write the frame")
-    return {"output": str(out), "frames": n, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9), "blinks": None if eye is None else count_blinks(eye), "pose_warning": pose_warning}
+    size = list(plan.framing.source_size) if plan is not None else [int(meta["width"]), int(meta["height"])]
+    return {"output": str(out), "frames": n, "size": size, "pasted_back": plan is not None, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9), "blinks": None if eye is None else count_blinks(eye), "pose_warning": pose_warning}

@@ -45,12 +45,15 @@ class Framing:
         crop: ``(x0, y0, w, h)`` of the crop in source pixels (the whole frame when not cropped).
         size: ``(width, height)`` of the dataset's frames, pixels.
         start_s: Seconds into the source (from its first frame) of the dataset's frame 0.
+        video: The source file's absolute path when preprocessed (where ``render --paste-back``
+            finds the frames to paste into; ``""``: not recorded).
     """
 
     source_size: tuple[int, int]
     crop: tuple[int, int, int, int]
     size: tuple[int, int]
     start_s: float = 0.0
+    video: str = ""
 
     @property
     def scale(self) -> float:
@@ -89,7 +92,7 @@ class Framing:
 
     @classmethod
     def from_dict(cls, doc: dict) -> "Framing":
-        return cls(tuple(doc["source_size"]), tuple(doc["crop"]), tuple(doc["size"]), float(doc.get("start_s", 0.0)))
+        return cls(tuple(doc["source_size"]), tuple(doc["crop"]), tuple(doc["size"]), float(doc.get("start_s", 0.0)), str(doc.get("video", "")))
 
 
 def parse_crop(text: str) -> str | tuple[int, int, int, int]:

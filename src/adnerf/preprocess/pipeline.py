@@ -34,7 +34,7 @@ import shutil
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -377,7 +377,7 @@ def _framing(video: Path, config: PreprocessConfig) -> tuple[Framing, dict]:
             except ValueError as exc:
                 raise PreprocessError(str(exc)) from exc
     try:
-        return plan_framing(source, crop, config.size, config.start), found
+        return replace(plan_framing(source, crop, config.size, config.start), video=str(video.resolve())), found
     except ValueError as exc:
         raise PreprocessError(f"{video}: {exc}") from exc
 
