@@ -98,3 +98,16 @@ def test_bench_scale_measures_each_length_and_the_loop_keeps_audio_on_its_frames
     same = np.abs(features[10:40] - features[60:90]).mean()
     shifted = np.abs(features[10:40] - features[61:91]).mean()  # a pass one frame off
     assert same < 0.25 * shifted
+
+
+def test_a_childs_peak_memory_is_its_own_not_its_parents(tmp_path: Path) -> None:
+    """The parent holds 1.5 GiB; a child that runs ``adnerf --help`` peaks far below that (the
+    rusage of a forked child also counts the parent's pages it shared before exec)."""
+    from adnerf.bench.scale import _child
+
+    held = np.ones(3 * 2**27, np.float32)  # 1.5 GiB, resident
+    held[:: 4096 // 4] = 2.0
+    wall, peak = _child(["--help"], tmp_path / "help.log")
+    assert peak is not None and 0.01 < peak < 0.75, peak
+    assert "usage: adnerf" in (tmp_path / "help.log").read_text()
+    del held

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["MemoryNeedError", "available_bytes", "gib", "require"]
+__all__ = ["MemoryNeedError", "available_bytes", "gib", "peak_rss_bytes", "require"]
 
 HEADROOM = 0.9
 """Share of the available memory a clip may take: the rest is for the model, the batch and the
@@ -24,6 +24,31 @@ class MemoryNeedError(ValueError):
 def gib(n: float) -> str:
     """Bytes as ``"1.23 GiB"``."""
     return f"{n / 2**30:.2f} GiB"
+
+
+def peak_rss_bytes() -> int | None:
+    """This process's peak resident memory since it started its program: Linux's ``VmHWM``
+    (``/proc/self/status``), else ``getrusage``'s ``ru_maxrss``; ``None`` when unknown.
+
+    ``VmHWM`` belongs to the address space that ``exec`` created, so a child process started from a
+    large parent reports its own peak; ``ru_maxrss`` (the fallback) also counts the pages the child
+    shared with its parent between ``fork`` and ``exec``.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import resource
+        import sys
+
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return int(peak) if sys.platform == "darwin" else int(peak) * 1024  # macOS: bytes; Linux: KiB
+    except (ImportError, OSError):  # pragma: no cover - no resource module (Windows)
+        return None
 
 
 def available_bytes() -> int | None:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import platform
-import resource
 import sys
 import tempfile
 import time
@@ -31,6 +30,7 @@ from typing import Sequence
 import torch
 
 from ..allocator import tune_allocator
+from ..memory import peak_rss_bytes
 from ..metrics import psnr_from_mse
 from ..model.blinks import blinks_in
 from ..model.data import SceneMeta, load_dataset
@@ -139,7 +139,8 @@ def _sync(device: str) -> None:
 def _peak_memory_mb(device: str) -> float:
     if device.startswith("cuda"):
         return torch.cuda.max_memory_allocated() / 2**20
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
+    peak = peak_rss_bytes()
+    return float("nan") if peak is None else peak / 2**20
 
 
 def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: Sequence[float], device: str, seed: int, progress: bool) -> dict:

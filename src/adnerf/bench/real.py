@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import json
 import math
-import resource
 import shutil
 import time
 from dataclasses import asdict
@@ -41,6 +40,8 @@ from typing import Callable
 
 import cv2
 import numpy as np
+
+from ..memory import peak_rss_bytes
 
 __all__ = ["bench_real", "drive_with_speech", "plot_mouth_opening", "resized_video"]
 
@@ -328,7 +329,7 @@ def bench_real(
         "train_seconds": elapsed["head"] + elapsed["torso"],
         "seconds_per_step": {stage: round(elapsed[stage] / max(iters, 1), 4) for stage, iters in (("head", run.train_config.head_iters), ("torso", run.train_config.torso_iters))},
         "data_bytes_per_frame": frame_bytes(ds.meta),
-        "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),  # this process's, the training included (Linux: KiB)
+        "peak_rss_gib": None if peak_rss_bytes() is None else round(peak_rss_bytes() / 2**30, 2),  # this process's, the training included
         "device": device,
         "layers": report.get("layers"),
         "lip_signal": lips,

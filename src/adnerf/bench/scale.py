@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
 import subprocess
 import sys
@@ -33,7 +32,19 @@ import numpy as np
 
 __all__ = ["bench_scale", "format_scale_table", "looped_clip"]
 
-CHILD = "import sys; from adnerf.cli import main; raise SystemExit(main(sys.argv[1:]))"
+# The child runs the command, then writes its own peak resident memory (bytes) to the file its
+# first argument names (the parent's getrusage would also count the pages a child shares with a
+# large parent between fork and exec).
+CHILD = (
+    "import sys\n"
+    "from adnerf.cli import main\n"
+    "from adnerf.memory import peak_rss_bytes\n"
+    "try:\n"
+    "    code = main(sys.argv[2:])\n"
+    "finally:\n"
+    "    open(sys.argv[1], 'w').write(str(peak_rss_bytes() or ''))\n"
+    "raise SystemExit(code)"
+)
 
 
 def looped_clip(video: str | Path, seconds: float, out: str | Path) -> tuple[Path, dict]:
@@ -83,16 +94,14 @@ def _child(argv: list[str], log_path: Path) -> tuple[float, float | None]:
     ``None`` where the system does not report a child's). Raises ``RuntimeError`` with the end of
     its output when it fails."""
     t0 = time.perf_counter()
+    peak_file = log_path.with_suffix(".peak")
+    peak_file.unlink(missing_ok=True)
     with open(log_path, "w") as logf:
-        proc = subprocess.Popen([sys.executable, "-c", CHILD, *argv], stdout=logf, stderr=subprocess.STDOUT)
-        if hasattr(os, "wait4"):
-            _, status, usage = os.wait4(proc.pid, 0)
-            proc.returncode = os.waitstatus_to_exitcode(status)
-            peak = usage.ru_maxrss / 2**20  # Linux: KiB
-        else:  # pragma: no cover - not on Linux
-            proc.wait()
-            peak = None
+        proc = subprocess.Popen([sys.executable, "-c", CHILD, str(peak_file), *argv], stdout=logf, stderr=subprocess.STDOUT)
+        proc.wait()
     wall = time.perf_counter() - t0
+    text = peak_file.read_text().strip() if peak_file.exists() else ""
+    peak = int(text) / 2**30 if text else None
     if proc.returncode != 0:
         tail = log_path.read_text(errors="replace")[-2000:].replace("\r", "\n")
         raise RuntimeError(f"adnerf {' '.join(argv[:1])} failed (exit {proc.returncode}); the end of its output ({log_path}):\n{tail}")
