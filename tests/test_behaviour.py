@@ -14,7 +14,7 @@ import pytest
 import torch
 from kornia.metrics import psnr as kornia_psnr
 
-from adnerf.commands import render_video
+from adnerf.model import render_clip  # the render loop: what the spies replace
 from adnerf.cli import main
 from adnerf.commands.render_video import audio_frames, render_frames
 from adnerf.evaluation.evaluate import head_metrics, image_metrics, mouth_boxes
@@ -145,13 +145,13 @@ def test_positive_yaw_turns_the_face_towards_the_image_left(scene: Path, run: Pa
     clockwise in the image. Checked on the point in front of the head's centre (canonical -z)."""
     ds, r = load_dataset(scene), load_run(run)
     seen: list[HeadPose] = []
-    real = render_video.render_frame
+    real = render_clip.render_frame
 
     def spy(model, camera, pose, code, plate, **kw):  # noqa: ANN001, ANN003, ANN202
         seen.append(pose)
         return real(model, camera, pose, code, plate, **kw)
 
-    monkeypatch.setattr(render_video, "render_frame", spy)
+    monkeypatch.setattr(render_clip, "render_frame", spy)
     idx = [ds.meta.test[0]]
     plate = ds.background.astype(np.float32) / 255.0
     front = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)  # rigidly on the head: ahead of its centre, and to its image-right side
@@ -191,13 +191,13 @@ def test_a_click_falls_in_the_window_of_its_frame(fps: float, neighbours: tuple[
 def test_the_render_passes_each_frame_its_own_audio_code(scene: Path, run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     ds, r = load_dataset(scene), load_run(run)
     codes: list[torch.Tensor] = []
-    real = render_video.render_frame
+    real = render_clip.render_frame
 
     def spy(model, camera, pose, code, plate, **kw):  # noqa: ANN001, ANN003, ANN202
         codes.append(code.clone())
         return real(model, camera, pose, code, plate, **kw)
 
-    monkeypatch.setattr(render_video, "render_frame", spy)
+    monkeypatch.setattr(render_clip, "render_frame", spy)
     idx = list(ds.meta.test)[:3]
     render_frames(r, ds.features[idx], ds.poses[idx], ds.background.astype(np.float32) / 255.0)
     with torch.no_grad():

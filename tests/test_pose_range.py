@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from adnerf.cli import main
-from adnerf.commands import render_video
+from adnerf.model import render_clip  # the render loop: what the spies replace
 from adnerf.commands.pose_edits import angle_tracks, edit_poses, parse_angle, sway
 from adnerf.commands.render_video import RenderError, render_audio_video, render_frames
 from adnerf.io import AudioTrack, write_video
@@ -123,13 +123,13 @@ def test_a_per_frame_yaw_file_turns_each_frame_by_its_own_angle(scene: Path, run
     of that angle, frame by frame (a track read in the wrong order or applied to every frame fails)."""
     ds, r = load_dataset(scene), load_run(run)
     seen: list[HeadPose] = []
-    real = render_video.render_frame
+    real = render_clip.render_frame
 
     def spy(model, camera, pose, code, plate, **kw):  # noqa: ANN001, ANN003, ANN202
         seen.append(pose)
         return real(model, camera, pose, code, plate, **kw)
 
-    monkeypatch.setattr(render_video, "render_frame", spy)
+    monkeypatch.setattr(render_clip, "render_frame", spy)
     idx = ds.meta.test[:3]
     plate = ds.background.astype(np.float32) / 255.0
     render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=np.array([0.0, 10.0, -4.0]))
@@ -232,13 +232,13 @@ def test_the_torso_reads_the_track_not_the_edit_by_default(scene: Path, run: Pat
 
     ds, r = load_dataset(scene), load_run(run)
     seen: list[tuple[HeadPose, HeadPose | None]] = []
-    real = render_video.render_frame
+    real = render_clip.render_frame
 
     def spy(model, camera, pose, code, plate, **kw):  # noqa: ANN001, ANN003, ANN202
         seen.append((pose, kw.get("read_pose")))
         return real(model, camera, pose, code, plate, **kw)
 
-    monkeypatch.setattr(render_video, "render_frame", spy)
+    monkeypatch.setattr(render_clip, "render_frame", spy)
     idx = ds.meta.test[:1]
     plate = ds.background.astype(np.float32) / 255.0
     render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=15.0)

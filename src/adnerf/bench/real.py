@@ -93,7 +93,7 @@ def _probe_seconds_per_iteration(dataset: Path, folder: Path, device: str, seed:
 
 def _sheet(path: Path, ds, frames: list[int], rendered: np.ndarray, count: int = 5) -> Path:
     """True and rendered held-out frames, with their mouth crops enlarged beside them."""
-    from ..commands.demo import contact_sheet
+    from ..evaluation.sheets import contact_sheet
     from ..evaluation.evaluate import mouth_boxes
 
     picks = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)

@@ -19,11 +19,12 @@ from typing import Callable
 import numpy as np
 
 from ..evaluation.evaluate import evaluate_run
+from ..evaluation.sheets import contact_sheet  # re-exported: the demo's sheet
 from ..io import write_video
 from ..model.data import DatasetError, SceneMeta, load_dataset, tail_split
 from ..model.train import TrainConfig, load_run, train
 from ..synth import SynthConfig, synthesize
-from .render_video import render_frames
+from ..model.render_clip import render_frames
 
 __all__ = ["DEMO_SYNTH", "DEMO_TRAIN", "check_reused_scene", "contact_sheet", "run_demo"]
 
@@ -67,31 +68,6 @@ def check_reused_scene(meta: SceneMeta, config: SynthConfig, where: Path, has_ey
             f"makes ({config.seconds:g} s at {config.fps:g} fps, {config.size} px, {len(test)} held out, {mouth} jaw, {said[config.blinks]}); "
             "choose another output folder or delete that one"
         )
-
-
-def contact_sheet(path: Path, rows: list[np.ndarray], titles: list[str], row_labels: list[str]) -> Path:
-    """A grid of images (rows of ``(k, H, W, 3)`` uint8 stacks) with column titles, saved as PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n_rows, n_cols = len(rows), len(titles)
-    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.2 * n_cols, 2.2 * n_rows), squeeze=False)
-    for r, stack in enumerate(rows):
-        for c in range(n_cols):
-            ax = axes[r][c]
-            ax.imshow(stack[c])
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(titles[c], fontsize=9)
-            if c == 0:
-                ax.set_ylabel(row_labels[r], fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 DEMO_BLINK_GAP = (0.5, 1.0)  # blinks commanded on the held-out frames: 3-5 in their 3 s

@@ -19,10 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from ..model.pose_range import AXES, ROTATION_MARGIN_DEG, TRANSLATION_MARGIN, PoseRange
-from ..pose import perturb_pose
+from ..model.pose_range import AXES, ROTATION_MARGIN_DEG, TRANSLATION_MARGIN, PoseRange, edit_poses  # edit_poses: re-exported
 
 __all__ = ["AngleTrack", "PoseRangeError", "check_pose_range", "edit_poses", "keep_inside", "parse_angle", "sway"]
 
@@ -103,17 +101,6 @@ def sway(n: int, fps: float, amplitude: float, period: float, *, phase: float = 
     t = np.arange(n) / fps
     w = 2.0 * math.pi / period
     return amplitude * (0.7 * np.sin(w * t + phase) + 0.3 * np.sin(2.71 * w * t + 2.0 * phase))
-
-
-def edit_poses(poses: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """Poses ``(N, 4, 4)`` rotated about the head centre by per-frame yaw, pitch and roll
-    ``angles (N, 3)`` in degrees (:func:`adnerf.pose.perturb_pose`); float64."""
-    p = torch.as_tensor(np.asarray(poses, dtype=np.float64))
-    a = torch.as_tensor(np.radians(np.asarray(angles, dtype=np.float64)))
-    R, t = perturb_pose(p[:, :3, :3], p[:, :3, 3], yaw=a[:, 0], pitch=a[:, 1], roll=a[:, 2])
-    out = np.tile(np.eye(4), (len(poses), 1, 1))
-    out[:, :3, :3], out[:, :3, 3] = R.numpy(), t.numpy()
-    return out
 
 
 def keep_inside(poses: np.ndarray, angles: np.ndarray, axes: list[int], taught: PoseRange, iterations: int = 6) -> np.ndarray:

@@ -10,7 +10,6 @@ the training dataset. Yaw, pitch and roll (degrees) rotate every pose about the 
 from __future__ import annotations
 
 import math
-import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +17,6 @@ from typing import Callable
 
 import cv2
 import numpy as np
-import torch
 
 from ..audio.features import (
     FEATURE_KINDS,
@@ -29,23 +27,16 @@ from ..audio.features import (
 )
 from ..io import AudioTrack, MediaError, read_audio, write_video
 from ..model.blinks import count_blinks, eye_track
-from ..model.data import DatasetError, SceneMeta, check_poses
-from ..model.pose_range import torso_reads
+from ..model.render_clip import RenderedClip, RenderError, checked_poses, render_frames  # re-exported: the command's refusals and its loop
 from ..model.run_folder import Run
-from ..model.talking_head import FrameRender, render_frame
 from ..lock import writes_folder
 from ..outputs import check_file_output, check_frames_folder
-from ..pose import HeadPose
 from ..preprocess.framing import Framing
 from .paste_back import PasteBackError, paste_back_frames, source_frames_of_dataset, write_pasted
 from .pose_edits import AngleTrack, angle_tracks, check_pose_range, edit_poses, parse_angle
 
-__all__ = ["RenderError", "check_render_outputs", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
+__all__ = ["RenderError", "RenderedClip", "check_render_outputs", "check_speech", "load_background", "pingpong", "render_frames", "render_audio_video"]
 
-
-
-class RenderError(ValueError):
-    """Inputs to rendering that cannot be used (silent audio, wrong pose count, bad image)."""
 
 
 def check_speech(audio: AudioTrack, where: str, *, level: float = 0.01, min_fraction: float = 0.05) -> None:
@@ -178,16 +169,7 @@ def load_poses(path: str | Path, n: int) -> np.ndarray:
         raise RenderError(f"{p}: poses must have shape (N, 4, 4); got {poses.shape}")
     if len(poses) != n:
         raise RenderError(f"{p}: has {len(poses)} poses but the audio gives {n} frames at this fps; give one pose per frame")
-    return _checked_poses(poses.astype(np.float64), str(p))
-
-
-def _checked_poses(poses: np.ndarray, where: str) -> np.ndarray:
-    """``poses`` after the dataset loader's rigidity checks (:func:`adnerf.model.data.check_poses`)."""
-    try:
-        check_poses(poses, where)
-    except DatasetError as exc:
-        raise RenderError(str(exc)) from exc
-    return poses
+    return checked_poses(poses.astype(np.float64), str(p))
 
 
 def frame_names(n: int) -> list[str]:
@@ -203,95 +185,6 @@ def check_render_outputs(out: str | Path, frames_dir: str | Path | None, *, inpu
     check_file_output(out, inputs=inputs, overwrite=overwrite)
     if frames_dir is not None:
         check_frames_folder(frames_dir, overwrite=overwrite)
-
-
-@dataclass
-class RenderedClip:
-    """Rendered frames with what they were rendered from.
-
-    Attributes:
-        frames: ``(N, H, W, 3)`` uint8.
-        head_opacity: ``(N, H, W)`` float32.
-        torso_opacity: ``(N, H, W)`` float32.
-        seconds: Wall time of the rendering.
-    """
-
-    frames: np.ndarray
-    head_opacity: np.ndarray
-    torso_opacity: np.ndarray
-    seconds: float
-
-
-def render_frames(
-    run: Run,
-    windows: np.ndarray,
-    poses: np.ndarray,
-    plate: np.ndarray,
-    *,
-    yaw: float | np.ndarray = 0.0,
-    pitch: float | np.ndarray = 0.0,
-    roll: float | np.ndarray = 0.0,
-    eye: np.ndarray | None = None,
-    torso_pose: str = "track",
-    progress: Callable[[int, int], None] | None = None,
-) -> RenderedClip:
-    """Render one frame per feature window.
-
-    Args:
-        run: A loaded run.
-        windows: Audio feature windows ``(N, 16, D)``.
-        poses: Head poses ``(N, 4, 4)``.
-        plate: Background ``(H, W, 3)`` float in [0, 1].
-        yaw: Added rotation about the head's vertical axis through its centre, degrees (one
-            number, or ``(N,)`` per frame); positive turns the face towards the image's left (the
-            person's right).
-        pitch: About the horizontal axis, degrees (a number or ``(N,)``); positive nods the face down.
-        roll: About the viewing axis, degrees (a number or ``(N,)``); positive turns the head
-            clockwise in the image.
-        eye: Eye openness per frame ``(N,)`` (1 open, 0 closed) for runs whose head reads it;
-            ``None``: open.
-        torso_pose: What the torso reads under an edit (:func:`~adnerf.model.pose_range.torso_reads`):
-            ``"track"`` the un-edited poses.
-        progress: Called as ``progress(done, total)``.
-    """
-    model = run.model
-    dev = next(model.parameters()).device
-    meta = run.meta
-    if len(poses) != len(windows):
-        raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
-    if eye is not None and (np.shape(eye) != (len(windows),) or not np.isfinite(eye).all()):
-        raise RenderError(f"eye openness must be {len(windows)} finite values, one per frame; got shape {np.shape(eye)}")
-    try:
-        angles = np.stack([np.broadcast_to(np.asarray(a, dtype=np.float64), (len(windows),)) for a in (yaw, pitch, roll)], axis=1)
-    except ValueError:
-        raise RenderError(f"yaw, pitch and roll must be numbers or one angle per frame ({len(windows)}); got shapes {[np.shape(a) for a in (yaw, pitch, roll)]}") from None
-    if not np.isfinite(angles).all():
-        raise RenderError("yaw, pitch and roll must be finite degrees")
-    track = _checked_poses(np.asarray(poses, dtype=np.float64), "poses")
-    poses = edit_poses(track, angles)
-    reads = torso_reads(torso_pose, track, poses, run.pose_range)
-    if plate.shape != (meta["height"], meta["width"], 3):
-        raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
-    camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
-    plate_t = torch.as_tensor(plate, dtype=torch.float32, device=dev)
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        codes = model.frame_codes(torch.as_tensor(windows, device=dev))
-    n = len(windows)
-    H, W = camera.height, camera.width
-    frames = np.empty((n, H, W, 3), dtype=np.uint8)
-    head_op = np.empty((n, H, W), dtype=np.float32)
-    torso_op = np.empty((n, H, W), dtype=np.float32)
-    for i in range(n):
-        pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev))
-        read = None if reads is None or not angles[i].any() else HeadPose.from_matrix(torch.as_tensor(reads[i], dtype=torch.float64, device=dev))  # an un-edited frame reads its own pose
-        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, eye=None if eye is None else float(eye[i]), layers=run.trained_layers, amp=run.train_config.amp, read_pose=read)
-        frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
-        head_op[i] = out.head_opacity.cpu().numpy()
-        torso_op[i] = out.torso_opacity.cpu().numpy()
-        if progress is not None:
-            progress(i + 1, n)
-    return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0)
 
 
 def audio_frames(audio: AudioTrack, fps: float, feature_kind: str, where: str) -> np.ndarray:
@@ -404,7 +297,7 @@ def render_audio_video(
         if not (source / "poses.npy").exists():
             hint = "" if from_dataset is not None else " (the run's training dataset has moved or gone: take poses from a dataset with --from DATASET, or give them with --poses FILE.npy)"
             raise RenderError(f"{source}: no poses.npy to take poses from{hint}")
-        poses = pingpong(_checked_poses(np.load(source / "poses.npy"), str(source / "poses.npy")), n)
+        poses = pingpong(checked_poses(np.load(source / "poses.npy"), str(source / "poses.npy")), n)
     if plan is not None and plan.plate is not None:
         plate = plan.plate
     elif background is not None:

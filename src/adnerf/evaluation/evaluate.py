@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from kornia.metrics import ssim
 
-from ..commands.render_video import RenderedClip, render_frames
+from ..model.render_clip import RenderedClip, render_frames
 from ..metrics import psnr
 from ..model.data import (
     LABEL_HEAD,

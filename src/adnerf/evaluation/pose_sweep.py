@@ -189,7 +189,7 @@ def pose_sweep(
 def sweep_sheet(path: str | Path, renders: np.ndarray, yaws: Sequence[float], labels: Sequence[str], zoom: tuple[int, int, int, int] | None = None) -> Path:
     """A contact sheet of a sweep's renders ``(F, Y, H, W, 3)``: a row per frame, a column per yaw;
     ``zoom`` ``(x0, y0, x1, y1)`` adds, under each row, the same crop enlarged."""
-    from ..commands.demo import contact_sheet
+    from .sheets import contact_sheet
 
     rows = []
     row_labels = []

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..pose import euler_angles, euler_rotation, mean_rotation
+from ..pose import euler_angles, euler_rotation, mean_rotation, perturb_pose
 
 __all__ = ["AXES", "PoseRange", "ROTATION_MARGIN_DEG", "TORSO_POSES", "TRANSLATION_MARGIN", "relative_angles", "torso_reads"]
 
@@ -222,3 +222,14 @@ def torso_reads(mode: str, track: np.ndarray, edited: np.ndarray, taught: PoseRa
     if mode == "track":
         return track
     return edited if taught is None else taught.clamp(edited)
+
+
+def edit_poses(poses: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Poses ``(N, 4, 4)`` rotated about the head centre by per-frame yaw, pitch and roll
+    ``angles (N, 3)`` in degrees (:func:`adnerf.pose.perturb_pose`); float64."""
+    p = torch.as_tensor(np.asarray(poses, dtype=np.float64))
+    a = torch.as_tensor(np.radians(np.asarray(angles, dtype=np.float64)))
+    R, t = perturb_pose(p[:, :3, :3], p[:, :3, 3], yaw=a[:, 0], pitch=a[:, 1], roll=a[:, 2])
+    out = np.tile(np.eye(4), (len(poses), 1, 1))
+    out[:, :3, :3], out[:, :3, 3] = R.numpy(), t.numpy()
+    return out

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..evaluation.landmark_metrics import pearson
+from ..ridge import pearson
 from ..metrics import psnr
 from ..model.data import load_dataset
 from .headpose import align_poses, project_points

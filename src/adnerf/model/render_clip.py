@@ -1,0 +1,127 @@
+"""Render a run's frames: one per audio feature window, under given (or edited) head poses.
+
+The one rendering loop of the product, below both the ``render`` command
+(:mod:`adnerf.commands.render_video`) and the evaluation (:mod:`adnerf.evaluation.evaluate`):
+each frame's pose (rotated by per-frame yaw, pitch and roll about the head centre), its audio
+code, its eye openness, and what the torso reads under an edit
+(:func:`~adnerf.model.pose_range.torso_reads`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..pose import HeadPose
+from .data import DatasetError, SceneMeta, check_poses
+from .pose_range import edit_poses, torso_reads
+from .run_folder import Run
+from .talking_head import FrameRender, render_frame
+
+__all__ = ["RenderError", "RenderedClip", "checked_poses", "render_frames"]
+
+
+class RenderError(ValueError):
+    """Inputs to rendering that cannot be used (silent audio, wrong pose count, bad image)."""
+
+
+def checked_poses(poses: np.ndarray, where: str) -> np.ndarray:
+    """``poses`` after the dataset loader's rigidity checks (:func:`adnerf.model.data.check_poses`)."""
+    try:
+        check_poses(poses, where)
+    except DatasetError as exc:
+        raise RenderError(str(exc)) from exc
+    return poses
+
+
+@dataclass
+class RenderedClip:
+    """Rendered frames with what they were rendered from.
+
+    Attributes:
+        frames: ``(N, H, W, 3)`` uint8.
+        head_opacity: ``(N, H, W)`` float32.
+        torso_opacity: ``(N, H, W)`` float32.
+        seconds: Wall time of the rendering.
+    """
+
+    frames: np.ndarray
+    head_opacity: np.ndarray
+    torso_opacity: np.ndarray
+    seconds: float
+
+
+def render_frames(
+    run: Run,
+    windows: np.ndarray,
+    poses: np.ndarray,
+    plate: np.ndarray,
+    *,
+    yaw: float | np.ndarray = 0.0,
+    pitch: float | np.ndarray = 0.0,
+    roll: float | np.ndarray = 0.0,
+    eye: np.ndarray | None = None,
+    torso_pose: str = "track",
+    progress: Callable[[int, int], None] | None = None,
+) -> RenderedClip:
+    """Render one frame per feature window.
+
+    Args:
+        run: A loaded run.
+        windows: Audio feature windows ``(N, 16, D)``.
+        poses: Head poses ``(N, 4, 4)``.
+        plate: Background ``(H, W, 3)`` float in [0, 1].
+        yaw: Added rotation about the head's vertical axis through its centre, degrees (one
+            number, or ``(N,)`` per frame); positive turns the face towards the image's left (the
+            person's right).
+        pitch: About the horizontal axis, degrees (a number or ``(N,)``); positive nods the face down.
+        roll: About the viewing axis, degrees (a number or ``(N,)``); positive turns the head
+            clockwise in the image.
+        eye: Eye openness per frame ``(N,)`` (1 open, 0 closed) for runs whose head reads it;
+            ``None``: open.
+        torso_pose: What the torso reads under an edit (:func:`~adnerf.model.pose_range.torso_reads`):
+            ``"track"`` the un-edited poses.
+        progress: Called as ``progress(done, total)``.
+    """
+    model = run.model
+    dev = next(model.parameters()).device
+    meta = run.meta
+    if len(poses) != len(windows):
+        raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
+    if eye is not None and (np.shape(eye) != (len(windows),) or not np.isfinite(eye).all()):
+        raise RenderError(f"eye openness must be {len(windows)} finite values, one per frame; got shape {np.shape(eye)}")
+    try:
+        angles = np.stack([np.broadcast_to(np.asarray(a, dtype=np.float64), (len(windows),)) for a in (yaw, pitch, roll)], axis=1)
+    except ValueError:
+        raise RenderError(f"yaw, pitch and roll must be numbers or one angle per frame ({len(windows)}); got shapes {[np.shape(a) for a in (yaw, pitch, roll)]}") from None
+    if not np.isfinite(angles).all():
+        raise RenderError("yaw, pitch and roll must be finite degrees")
+    track = checked_poses(np.asarray(poses, dtype=np.float64), "poses")
+    poses = edit_poses(track, angles)
+    reads = torso_reads(torso_pose, track, poses, run.pose_range)
+    if plate.shape != (meta["height"], meta["width"], 3):
+        raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
+    camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
+    plate_t = torch.as_tensor(plate, dtype=torch.float32, device=dev)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        codes = model.frame_codes(torch.as_tensor(windows, device=dev))
+    n = len(windows)
+    H, W = camera.height, camera.width
+    frames = np.empty((n, H, W, 3), dtype=np.uint8)
+    head_op = np.empty((n, H, W), dtype=np.float32)
+    torso_op = np.empty((n, H, W), dtype=np.float32)
+    for i in range(n):
+        pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev))
+        read = None if reads is None or not angles[i].any() else HeadPose.from_matrix(torch.as_tensor(reads[i], dtype=torch.float64, device=dev))  # an un-edited frame reads its own pose
+        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, eye=None if eye is None else float(eye[i]), layers=run.trained_layers, amp=run.train_config.amp, read_pose=read)
+        frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
+        head_op[i] = out.head_opacity.cpu().numpy()
+        torso_op[i] = out.torso_opacity.cpu().numpy()
+        if progress is not None:
+            progress(i + 1, n)
+    return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0)
