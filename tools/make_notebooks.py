@@ -1,11 +1,23 @@
-"""Write the walkthrough notebooks from their cell sources (run: python tools/make_notebooks.py).
+"""Write the walkthrough notebooks from their cell sources.
 
-Notebooks are stored without outputs; the test run executes them (tests/test_notebooks.py).
+    python tools/make_notebooks.py              # write the cells; keep the stored outputs of unchanged cells
+    python tools/make_notebooks.py --execute    # also run them and store their outputs (figures as PNG)
+
+Notebooks are stored with their outputs, so that a reader on a code host sees the figures without
+running anything. ``--execute`` runs them at their full size (several minutes on 2 CPU cores;
+``--small`` at the test size). The test run executes them again (tests/test_notebooks.py), and a
+test checks that the stored cells are the ones this script writes.
 """
 
 from __future__ import annotations
 
+import argparse
+import os
+import sys
+import tempfile
+import time
 from pathlib import Path
+from typing import Callable
 
 import nbformat
 
@@ -127,7 +139,7 @@ def error_vs_runtime() -> nbformat.NotebookNode:
            "(`adnerf bench fields`: held-out PSNR after equal budgets of training time), and (2) how the volume-rendering "
            "quadrature error falls with samples per ray, stratified against importance sampling (`adnerf bench render`, "
            "an analytic sphere whose opacity and depth are known in closed form).\n\n"
-           "Part 1 draws the saved result of the README's bench run (`docs/bench/fields_cpu.jsonl`). To measure your own "
+           "Part 1 draws the saved result of the project's bench run (`docs/bench/fields_cpu.jsonl`). To measure your own "
            "machine: `adnerf bench fields --json --plot fields.png > fields.jsonl` (about 25 minutes on 2 CPU cores)."),
         code("import os\nfrom pathlib import Path\n\nimport matplotlib.pyplot as plt\n\nimport adnerf\n"
              "from adnerf.bench.render import bench_render\nfrom adnerf.bench.fields import bench_fields, format_fields_table, load_rows, plot_fields\n\n"
@@ -176,7 +188,7 @@ def real_clip() -> nbformat.NotebookNode:
            "`shared/data/talking_head_512.mp4` when it lies beside the checkout, else (so this notebook always runs) "
            "a synthetic clip. The test run executes it small (`ADNERF_NOTEBOOK_SMALL=1`: 128 px, a few seconds of "
            "training); unset that for 256 px and three minutes of training. `adnerf bench real VIDEO` does the same "
-           "steps with a training budget and writes the full table (README, *Real footage*)."),
+           "steps with a training budget and writes the full table (docs/cli.md, docs/benchmarks.md)."),
         code("import json\nimport os\nimport tempfile\nfrom pathlib import Path\n\n"
              "import matplotlib.pyplot as plt\nimport numpy as np\nfrom scipy.spatial.transform import Rotation\n\n"
              "import adnerf\nfrom adnerf.bench.real import resized_video\nfrom adnerf.model.data import load_dataset\n"
@@ -242,12 +254,57 @@ def real_clip() -> nbformat.NotebookNode:
     return _notebook(cells)
 
 
-def main() -> None:
-    for name, build in (("01_components.ipynb", components), ("02_quickstart.ipynb", quickstart), ("03_error_vs_runtime.ipynb", error_vs_runtime), ("04_real_clip.ipynb", real_clip)):
+NOTEBOOKS: dict[str, Callable[[], nbformat.NotebookNode]] = {
+    "01_components.ipynb": components,
+    "02_quickstart.ipynb": quickstart,
+    "03_error_vs_runtime.ipynb": error_vs_runtime,
+    "04_real_clip.ipynb": real_clip,
+}
+
+
+def keep_outputs(new: nbformat.NotebookNode, old: nbformat.NotebookNode) -> nbformat.NotebookNode:
+    """``new`` with the outputs of ``old``'s code cells whose id and source are unchanged."""
+    stored = {c.get("id"): c for c in old.cells if c.cell_type == "code"}
+    for cell in new.cells:
+        before = stored.get(cell.get("id"))
+        if cell.cell_type == "code" and before is not None and before.source == cell.source:
+            cell.outputs, cell.execution_count = before.get("outputs", []), before.get("execution_count")
+    return new
+
+
+def execute(nb: nbformat.NotebookNode, small: bool) -> nbformat.NotebookNode:
+    """Run a notebook in a fresh kernel in a scratch folder; figures come back as PNGs (100 dpi)."""
+    from nbclient import NotebookClient
+
+    os.environ.pop("MPLBACKEND", None)  # the kernel's inline backend
+    if small:
+        os.environ["ADNERF_NOTEBOOK_SMALL"] = "1"
+    else:
+        os.environ.pop("ADNERF_NOTEBOOK_SMALL", None)
+    with tempfile.TemporaryDirectory() as scratch:
+        NotebookClient(nb, timeout=3600, kernel_name="python3", record_timing=False, resources={"metadata": {"path": scratch}}).execute()
+    return nb
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="write (and run) the walkthrough notebooks")
+    parser.add_argument("--execute", action="store_true", help="run each notebook and store its outputs")
+    parser.add_argument("--small", action="store_true", help="with --execute: at the test size (ADNERF_NOTEBOOK_SMALL=1)")
+    parser.add_argument("--only", action="append", choices=sorted(NOTEBOOKS), help="only this notebook (repeatable)")
+    args = parser.parse_args(argv)
+    for name in args.only or NOTEBOOKS:
         out = ROOT / "notebooks" / name
-        nbformat.write(build(), out)
+        nb = NOTEBOOKS[name]()
+        if args.execute:
+            start = time.perf_counter()
+            nb = execute(nb, args.small)
+            print(f"ran {name} in {time.perf_counter() - start:.0f} s")
+        elif out.exists():
+            nb = keep_outputs(nb, nbformat.read(out, as_version=4))
+        nbformat.write(nb, out)
         print(f"wrote {out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
