@@ -260,7 +260,7 @@ def main() -> int:
     parser.add_argument("--steps-rays", default=(1024, 2048, 4096, 8192), type=_ints, help="rays per iteration of the steps step (default 1024,2048,4096,8192)")
     parser.add_argument("--steps-counts", default=(60, 60), type=_ints, help="WARM,TIMED iterations per ray count of the steps step (default 60,60)")
     parser.add_argument("--real", action="append", default=[], help="a preprocessed real clip (dataset folder) to train on the GPU (the real step); repeat for several (runs in real_run, real_run1, ...)")
-    parser.add_argument("--real-iters", default=(4345, 3555), type=_ints, help="HEAD,TORSO iterations of the real step's schedule before --real-scale (default 4345,3555: the README's CPU bench)")
+    parser.add_argument("--real-iters", default=(4345, 3555), type=_ints, help="HEAD,TORSO iterations of the real step's schedule before --real-scale (default 4345,3555: the CPU bench's schedule)")
     parser.add_argument("--real-scale", type=int, default=1, help="the real step trains TrainConfig(HEAD, TORSO).scaled(this): this many times the rays in as many times fewer steps (default 1)")
     parser.add_argument("--demo-scale", type=int, default=1, help="the demo step runs adnerf demo --scale this (default 1; the render and steps steps use its scene and run)")
     parser.add_argument("--demo-scales", default=(), type=_ints, help="demo_scaled step: scales k of TrainConfig().scaled(k) to train the demo's scene with (default none)")
