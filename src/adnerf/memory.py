@@ -26,6 +26,18 @@ def gib(n: float) -> str:
     return f"{n / 2**30:.2f} GiB"
 
 
+def _proc_kib(path: str, key: str) -> int | None:
+    """Bytes of a ``KEY:  N kB`` line of a Linux ``/proc`` file; ``None`` where there is none."""
+    try:
+        with open(path) as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def peak_rss_bytes() -> int | None:
     """This process's peak resident memory since it started its program: Linux's ``VmHWM``
     (``/proc/self/status``), else ``getrusage``'s ``ru_maxrss``; ``None`` when unknown.
@@ -34,13 +46,9 @@ def peak_rss_bytes() -> int | None:
     large parent reports its own peak; ``ru_maxrss`` (the fallback) also counts the pages the child
     shared with its parent between ``fork`` and ``exec``.
     """
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
+    peak = _proc_kib("/proc/self/status", "VmHWM")
+    if peak is not None:
+        return peak
     try:
         import resource
         import sys
@@ -54,13 +62,9 @@ def peak_rss_bytes() -> int | None:
 def available_bytes() -> int | None:
     """Memory available to a new allocation without swapping: Linux's ``MemAvailable``
     (``/proc/meminfo``), else free physical pages (``os.sysconf``); ``None`` when unknown."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
+    available = _proc_kib("/proc/meminfo", "MemAvailable")
+    if available is not None:
+        return available
     try:
         return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):
