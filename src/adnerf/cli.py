@@ -536,6 +536,30 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_stream(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .commands.render_video import check_render_outputs
+    from .commands.stream_video import stream_to_video
+    from .model.run_folder import load_run
+
+    if not args.output.endswith(".mp4"):
+        raise CliError(f"{args.output}: the output must be an .mp4 file")
+    check_render_outputs(args.output, args.frames, inputs=[None if args.audio == "-" else args.audio, args.background], overwrite=args.overwrite)
+    run = load_run(args.run, _device(args.device))
+    with tqdm(desc="stream", unit="frame") as bar:
+        summary = stream_to_video(
+            run, args.audio, args.output, chunk_s=args.chunk_ms / 1000.0, yaw=args.yaw, pitch=args.pitch, roll=args.roll,
+            blink=args.blink, background=args.background, frames_dir=args.frames, progress=lambda n: bar.update(n - bar.n),
+        )  # fmt: skip
+    first = "-" if summary["first_frame_s"] is None else f"{summary['first_frame_s']:.2f} s"
+    print(
+        f"{summary['output']}: {summary['frames']} frames, {summary['audio_seconds']:.2f} s of speech; look-ahead {summary['lookahead_s'] * 1000:.0f} ms, "
+        f"first frame after {first} of work, {summary['realtime_factor']:.2f}x real time"
+    )
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation.evaluate import evaluate_run
     from .evaluation.lpips import lpips_if_available
@@ -777,6 +801,26 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--device", default="cpu", help="cpu or cuda")
     rn.add_argument("-o", "--output", required=True, help="output .mp4")
     rn.set_defaults(func=_cmd_render)
+
+    st = sub.add_parser(
+        "stream",
+        help="render a run frame by frame as its speech arrives (a file played as a stream, or raw PCM on stdin), each frame as soon as no later audio can change it",
+        description="Frames wait for about 0.3 s of speech after their time at 25 fps (the look-ahead: 140 ms of feature window, 16 ms of FFT, "
+        "and AudioAttNet's 3 following frames) and equal adnerf render's frames of the same audio. Runs trained on log-mel features only.",
+    )
+    st.add_argument("run", help="run folder")
+    st.add_argument("--audio", required=True, help="speech file, or - for raw 16 kHz mono signed 16-bit little-endian PCM on standard input (arecord -f S16_LE -r 16000 -c 1)")
+    st.add_argument("--chunk-ms", type=_number(float, 1, 10000), default=40.0, help="milliseconds of audio taken at a time (default 40)")
+    st.add_argument("--yaw", type=_number(float, -180, 180), default=0.0, help="degrees added about the head's vertical axis (as render --yaw)")
+    st.add_argument("--pitch", type=_number(float, -180, 180), default=0.0, help="degrees added about the horizontal axis")
+    st.add_argument("--roll", type=_number(float, -180, 180), default=0.0, help="degrees added about the viewing axis")
+    st.add_argument("--blink", choices=("auto", "none"), default="auto", help="natural blinks or open eyes, for runs trained with eyes")
+    st.add_argument("--background", default=None, help="replacement background image")
+    st.add_argument("--frames", default=None, help="also write the frames as PNGs into this folder as they come")
+    st.add_argument("--overwrite", action="store_true", help="replace an existing output .mp4 and frame PNGs")
+    st.add_argument("--device", default="cpu", help="cpu or cuda")
+    st.add_argument("-o", "--output", required=True, help="output .mp4")
+    st.set_defaults(func=_cmd_stream)
 
     ev = sub.add_parser("evaluate", help="PSNR / SSIM (full frame, head, mouth), LMD, lip sync, and LPIPS and SyncNet LSE-D / LSE-C (with local weights) on held-out frames")
     ev.add_argument("run", help="run folder")

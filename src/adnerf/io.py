@@ -27,12 +27,13 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from .atomic import atomic_path
 from .memory import require
 
-__all__ = ["AudioTrack", "FrameReader", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "read_audio", "read_video", "write_video"]
+__all__ = ["AudioTrack", "FrameReader", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "read_audio", "read_image", "read_video", "write_video"]
 
 
 class MediaError(RuntimeError):
@@ -423,6 +424,28 @@ def read_video(
     )
 
 
+def read_image(path: str | Path, height: int, width: int) -> np.ndarray:
+    """An RGB image cropped to the aspect of ``(height, width)`` about its centre and resized (area
+    resampling) to ``(height, width, 3)`` float32 in [0, 1].
+
+    Raises:
+        MediaError: A missing or unreadable image.
+    """
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise MediaError(f"{path}: missing or unreadable image")
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+    h, w = img.shape[:2]
+    target = width / height
+    if w / h > target:
+        cw = int(round(h * target))
+        img = img[:, (w - cw) // 2 : (w - cw) // 2 + cw]
+    else:
+        ch = int(round(w / target))
+        img = img[(h - ch) // 2 : (h - ch) // 2 + ch]
+    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+
+
 class VideoWriter:
     """An mp4 (h264 yuv420p + aac mono) written frame by frame: memory holds one frame, not the clip.
 
@@ -479,6 +502,13 @@ class VideoWriter:
             raise MediaError(f"{self.path}: cannot create the video ({exc})") from exc
         self._stack = stack
         return self
+
+    def append_audio(self, samples: np.ndarray) -> None:
+        """Add mono samples to the end of the audio (a stream's sound, as it arrives; sample 0 still
+        plays with frame 0). The writer must have been made with audio (an empty array will do)."""
+        if self.audio is None:
+            raise MediaError(f"{self.path}: append_audio on a writer made without audio (give audio=np.zeros(0) and a sample_rate)")
+        self.audio = np.concatenate([self.audio, np.asarray(samples, dtype=np.float32).reshape(-1)])
 
     def write(self, frame: np.ndarray) -> None:
         """Encode one uint8 RGB frame ``(H, W, 3)`` (or float in ``[0, 1]``, converted)."""

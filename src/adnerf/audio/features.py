@@ -38,6 +38,7 @@ from ..io import AudioTrack, MediaError
 
 __all__ = [
     "FEATURE_RATE",
+    "StreamingWindows",
     "FeatureError",
     "WINDOW",
     "FeatureSpec",
@@ -112,22 +113,31 @@ def _mel_filterbank(n_mels: int, n_fft: int, sample_rate: int, fmin: float = 20.
     return torch.from_numpy(np.maximum(0.0, np.minimum(up, down))).float()
 
 
+N_FFT, MEL_WIN = 512, 400  # log-mel's FFT size and Hann window (25 ms), samples at 16 kHz
+
+
+def _logmel_frames(segment: np.ndarray, n_mels: int) -> np.ndarray:
+    """Log-mel features ``(T, n_mels)`` of the FFT frames ``segment[k * HOP : k * HOP + N_FFT]``
+    (the segment already padded: no centring here)."""
+    x = torch.from_numpy(np.ascontiguousarray(segment, dtype=np.float32))
+    spec = torch.stft(x, n_fft=N_FFT, hop_length=HOP, win_length=MEL_WIN, window=torch.hann_window(MEL_WIN), center=False, return_complex=True)
+    mel = _mel_filterbank(n_mels, N_FFT, MODEL_RATE) @ spec.abs().square()  # (n_mels, T)
+    return torch.log(mel + 1e-6).T.numpy().astype(np.float32)
+
+
 def logmel(samples: np.ndarray, n_mels: int = 80) -> np.ndarray:
     """Log-mel features of 16 kHz mono audio, ``(T, n_mels)``, feature ``k`` centred at ``k * 20 ms``.
 
     25 ms Hann windows, 20 ms hop, ``log(mel power + 1e-6)`` (the floor is the log of silence,
-    an offset on a power, not a guard inside a product).
+    an offset on a power, not a guard inside a product). The signal is padded with half an FFT of
+    silence at either end, so feature ``k`` sees the samples within 16 ms of its time and nothing
+    else (:class:`StreamingWindows` computes the same features as the audio arrives).
     """
-    x = torch.from_numpy(np.ascontiguousarray(samples, dtype=np.float32))
-    n_fft, win = 512, 400
-    if x.numel() < n_fft:
-        x = torch.nn.functional.pad(x, (0, n_fft - x.numel()))
-    spec = torch.stft(x, n_fft=n_fft, hop_length=HOP, win_length=win, window=torch.hann_window(win), center=True, pad_mode="constant", return_complex=True)
-    power = spec.abs().square()  # (F, T)
-    mel = _mel_filterbank(n_mels, n_fft, MODEL_RATE) @ power
-    n_expected = len(samples) // HOP + 1
-    out = torch.log(mel + 1e-6).T[:n_expected]
-    return out.numpy().astype(np.float32)
+    x = np.ascontiguousarray(samples, dtype=np.float32)
+    n_expected = len(x) // HOP + 1
+    if len(x) < N_FFT:
+        x = np.pad(x, (0, N_FFT - len(x)))
+    return _logmel_frames(np.pad(x, (N_FFT // 2, N_FFT // 2)), n_mels)[:n_expected]
 
 
 _HAMA_MODEL = None
@@ -326,6 +336,104 @@ def speech_windows(
     if cache_file is not None:
         save_npy_atomic(cache_file, windows)
     return windows
+
+
+class StreamingWindows:
+    """Log-mel feature windows of speech that arrives in pieces: the windows :func:`speech_windows`
+    cuts from the whole track, handed out as soon as they are final.
+
+    Frame ``i`` shows at ``start + i / fps``. Its window holds the 16 features centred on that time
+    (8 before, 7 after, 20 ms apart); the padding, the features and the cut are those of
+    :func:`speech_windows` on the whole track (silence before the first sample and after the
+    last), so the windows equal the offline ones exactly. A window is final once the audio
+    reaches :attr:`lookahead_s` past its frame's time: its last feature (140 ms on) and half an
+    FFT more (16 ms), rounded to the feature grid; only the last frames wait for :meth:`finish`.
+
+    Args:
+        fps: Video frame rate.
+        start: Time of the first sample and of frame 0, seconds.
+        n_mels: Mel bands.
+    """
+
+    def __init__(self, fps: float, *, start: float = 0.0, n_mels: int = 80) -> None:
+        if not (math.isfinite(fps) and fps > 0):
+            raise ValueError(f"fps must be a positive number; got {fps}")
+        self.fps, self.start, self.n_mels = float(fps), float(start), int(n_mels)
+        half = (WINDOW // 2 + 1) / FEATURE_RATE
+        self._begin = min(self.start, self.start - half)  # speech_windows' padded.start (frame 0 at start)
+        self._before = int(round((self.start - self._begin) * MODEL_RATE))
+        # The padded signal, itself padded by half an FFT on the left (logmel's centring).
+        self._xp = np.zeros(N_FFT // 2 + self._before, np.float32)
+        self._pushed = 0
+        self._feats = np.zeros((0, self.n_mels), np.float32)
+        self._done = 0  # windows handed out
+        self.finished = False
+
+    @property
+    def lookahead_s(self) -> float:
+        """Seconds of audio past a frame's time that its window waits for (at most)."""
+        return (WINDOW - WINDOW // 2 - 1) / FEATURE_RATE + (N_FFT // 2) / MODEL_RATE + 1.0 / FEATURE_RATE
+
+    @property
+    def frames_done(self) -> int:
+        """Windows handed out so far (frames ``0 .. frames_done - 1``)."""
+        return self._done
+
+    def _features_to(self, count: int) -> None:
+        k = len(self._feats)
+        if count > k:
+            segment = self._xp[k * HOP : (count - 1) * HOP + N_FFT]
+            self._feats = np.concatenate([self._feats, _logmel_frames(segment, self.n_mels)])
+
+    def _centres(self, frames: np.ndarray) -> np.ndarray:
+        times = self.start + np.asarray(frames, dtype=np.float64) / self.fps
+        return np.rint((times - self._begin) * FEATURE_RATE).astype(np.int64)
+
+    def _windows(self, first: int, last: int, n_features: int) -> np.ndarray:
+        offsets = np.arange(WINDOW) - WINDOW // 2
+        idx = np.clip(self._centres(np.arange(first, last))[:, None] + offsets[None, :], 0, n_features - 1)
+        return self._feats[idx]
+
+    def push(self, samples: np.ndarray) -> np.ndarray:
+        """Add 16 kHz mono samples; the windows that became final, ``(m, 16, n_mels)``, in frame order."""
+        if self.finished:
+            raise ValueError("the stream has finished; start another")
+        x = np.asarray(samples, dtype=np.float32).reshape(-1)
+        self._xp = np.concatenate([self._xp, x])
+        self._pushed += len(x)
+        known = self._before + self._pushed  # samples of the padded signal that are final
+        final = (known - N_FFT // 2) // HOP + 1 if known >= N_FFT // 2 else 0  # features whose FFT lies in them
+        self._features_to(final)
+        exist = int(math.floor(self._pushed / MODEL_RATE * self.fps))  # frames the audio already covers
+        ready = self._done
+        while ready < exist and self._centres(np.array([ready]))[0] + WINDOW - WINDOW // 2 - 1 < final:
+            ready += 1
+        out = self._windows(self._done, ready, max(final, 1)) if ready > self._done else np.zeros((0, WINDOW, self.n_mels), np.float32)
+        self._done = ready
+        return out
+
+    def finish(self) -> np.ndarray:
+        """End of the speech: the remaining windows (the track padded with silence as
+        :func:`speech_windows` pads it)."""
+        if self.finished:
+            return np.zeros((0, WINDOW, self.n_mels), np.float32)
+        self.finished = True
+        n = int(math.floor(self._pushed / MODEL_RATE * self.fps))
+        if n < 1:
+            return np.zeros((0, WINDOW, self.n_mels), np.float32)
+        half = (WINDOW // 2 + 1) / FEATURE_RATE
+        times_max = self.start + (n - 1) / self.fps
+        end = max(self.start + self._pushed / MODEL_RATE, times_max + half)
+        after = max(0, int(math.ceil((end - self._begin) * MODEL_RATE)) - self._before - self._pushed)
+        padded = self._before + self._pushed + after
+        if padded < N_FFT:  # logmel's own padding of a signal shorter than an FFT
+            after += N_FFT - padded
+        self._xp = np.concatenate([self._xp, np.zeros(after + N_FFT // 2, np.float32)])
+        total = padded // HOP + 1
+        self._features_to(total)
+        out = self._windows(self._done, n, total)
+        self._done = n
+        return out
 
 
 def save_npy_atomic(path: str | Path, array: np.ndarray) -> Path:

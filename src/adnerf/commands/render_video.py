@@ -25,7 +25,7 @@ from ..audio.features import (
     load_npy_windows,
     speech_windows,
 )
-from ..io import AudioTrack, MediaError, read_audio, write_video
+from ..io import AudioTrack, MediaError, read_audio, read_image, write_video
 from ..model.blinks import count_blinks, eye_track
 from ..model.render_clip import RenderedClip, RenderError, checked_poses, render_frames  # re-exported: the command's refusals and its loop
 from ..model.run_folder import Run
@@ -56,20 +56,15 @@ def check_speech(audio: AudioTrack, where: str, *, level: float = 0.01, min_frac
 
 
 def load_background(path: str | Path, height: int, width: int) -> np.ndarray:
-    """An RGB image resized (centre crop to the aspect, then area resampling) to ``(height, width, 3)`` float [0, 1]."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise RenderError(f"{path}: missing or unreadable image")
-    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
-    h, w = img.shape[:2]
-    target = width / height
-    if w / h > target:
-        cw = int(round(h * target))
-        img = img[:, (w - cw) // 2 : (w - cw) // 2 + cw]
-    else:
-        ch = int(round(w / target))
-        img = img[(h - ch) // 2 : (h - ch) // 2 + ch]
-    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+    """An RGB image as a background ``(height, width, 3)`` float in [0, 1] (:func:`adnerf.io.read_image`).
+
+    Raises:
+        RenderError: A missing or unreadable image.
+    """
+    try:
+        return read_image(path, height, width)
+    except MediaError as exc:
+        raise RenderError(str(exc)) from exc
 
 
 @dataclass

@@ -16,13 +16,14 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..cameras import Camera
 from ..pose import HeadPose
 from .data import DatasetError, SceneMeta, check_poses
 from .pose_range import edit_poses, torso_reads
 from .run_folder import Run
 from .talking_head import FrameRender, render_frame
 
-__all__ = ["RenderError", "RenderedClip", "checked_poses", "render_frames"]
+__all__ = ["RenderError", "RenderedClip", "checked_poses", "frame_setup", "render_frames", "render_one"]
 
 
 class RenderError(ValueError):
@@ -53,6 +54,36 @@ class RenderedClip:
     head_opacity: np.ndarray
     torso_opacity: np.ndarray
     seconds: float
+
+
+def frame_setup(run: Run, plate: np.ndarray) -> tuple[Camera, torch.Tensor]:
+    """The run's camera and a background ``(H, W, 3)`` float in [0, 1] as a tensor on its device.
+
+    Raises:
+        RenderError: A background of another size than the run's frames.
+    """
+    meta = run.meta
+    if plate.shape != (meta["height"], meta["width"], 3):
+        raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
+    dev = next(run.model.parameters()).device
+    camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
+    return camera, torch.as_tensor(plate, dtype=torch.float32, device=dev)
+
+
+def render_one(run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, code: torch.Tensor, *, eye: float | None = None, read_pose: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame: its head pose ``(4, 4)``, audio code ``(audio_dim,)`` and eye openness (``None``:
+    open), the torso reading ``read_pose`` when given (an edit).
+
+    Returns:
+        ``(rgb (H, W, 3) uint8, head opacity (H, W), torso opacity (H, W))``.
+    """
+    dev = plate.device
+    as_pose = lambda m: HeadPose.from_matrix(torch.as_tensor(m, dtype=torch.float64, device=dev))  # noqa: E731
+    out: FrameRender = render_frame(
+        run.model, camera, as_pose(pose), code, plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=None if read_pose is None else as_pose(read_pose)
+    )
+    rgb = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
+    return rgb, out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
 
 
 def render_frames(
@@ -89,7 +120,6 @@ def render_frames(
     """
     model = run.model
     dev = next(model.parameters()).device
-    meta = run.meta
     if len(poses) != len(windows):
         raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
     if eye is not None and (np.shape(eye) != (len(windows),) or not np.isfinite(eye).all()):
@@ -103,10 +133,7 @@ def render_frames(
     track = checked_poses(np.asarray(poses, dtype=np.float64), "poses")
     poses = edit_poses(track, angles)
     reads = torso_reads(torso_pose, track, poses, run.pose_range)
-    if plate.shape != (meta["height"], meta["width"], 3):
-        raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
-    camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
-    plate_t = torch.as_tensor(plate, dtype=torch.float32, device=dev)
+    camera, plate_t = frame_setup(run, plate)
     t0 = time.perf_counter()
     with torch.no_grad():
         codes = model.frame_codes(torch.as_tensor(windows, device=dev))
@@ -116,12 +143,8 @@ def render_frames(
     head_op = np.empty((n, H, W), dtype=np.float32)
     torso_op = np.empty((n, H, W), dtype=np.float32)
     for i in range(n):
-        pose = HeadPose.from_matrix(torch.as_tensor(poses[i], dtype=torch.float64, device=dev))
-        read = None if reads is None or not angles[i].any() else HeadPose.from_matrix(torch.as_tensor(reads[i], dtype=torch.float64, device=dev))  # an un-edited frame reads its own pose
-        out: FrameRender = render_frame(model, camera, pose, codes[i], plate_t, eye=None if eye is None else float(eye[i]), layers=run.trained_layers, amp=run.train_config.amp, read_pose=read)
-        frames[i] = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
-        head_op[i] = out.head_opacity.cpu().numpy()
-        torso_op[i] = out.torso_opacity.cpu().numpy()
+        read = None if reads is None or not angles[i].any() else reads[i]  # an un-edited frame reads its own pose
+        frames[i], head_op[i], torso_op[i] = render_one(run, camera, plate_t, poses[i], codes[i], eye=None if eye is None else float(eye[i]), read_pose=read)
         if progress is not None:
             progress(i + 1, n)
     return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0)
