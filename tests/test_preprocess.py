@@ -25,6 +25,7 @@ from adnerf.preprocess.parsing import (
     torso_check,
 )
 from adnerf.preprocess.pipeline import PERSON_AT_BOTTOM_MIN, _camera_motion
+from adnerf.preprocess.stillness import moving_regions
 from adnerf.preprocess.plate import background_plate
 from adnerf.preprocess.tracking import TrackConfig, Tracks, rigid_region, track_points
 from adnerf.synth import SynthConfig, synthesize
@@ -75,6 +76,7 @@ def test_preprocess_recovers_the_synthetic_truth(preprocessed: Path, scene: Path
     # The nose and eye corners joined the pose's adjustment, and the poses agree with them.
     assert report["pose_landmark_weight"] == PreprocessConfig.pose_landmarks > 0 and report["pose_landmark_rms_px"] < 1.0
     assert (preprocessed / "preprocess_report.png").stat().st_size > 0
+    assert report["parse_background_moving"] == [] and "parse_background_warning" not in report  # the scene's wall is still
     assert not any(p.name.startswith(".") for p in preprocessed.parent.iterdir()), "work folder left behind"
     # The mouth is in the head layer: the classical parser's row cut is replaced by the jaw line.
     assert report["face_head_torso_cut"].startswith("the jaw line") and "layers_warning" not in report
@@ -295,6 +297,23 @@ def test_moving_camera_is_measured() -> None:
     labels = np.zeros(frames.shape[:3], np.uint8)
     assert _camera_motion(frames, labels) == pytest.approx(1.0, abs=0.2)
     assert _camera_motion(np.repeat(frames[:1], 20, 0), labels) < 0.05
+
+
+def test_a_moving_part_of_the_background_is_named() -> None:
+    """A flickering patch (a screen) in the top right of a still wall is named there; the person
+    moving and a parse whose outline is 3 px off in every frame are not motion of the background."""
+    rng = np.random.default_rng(0)
+    wall = (synth_background(96) * 255).astype(np.uint8)
+    frames = np.repeat(wall[None], 40, 0)
+    labels = np.zeros(frames.shape[:3], np.uint8)
+    for i in range(40):
+        x = 30 + (i % 7)  # the person sways
+        frames[i, 40:, x : x + 30] = rng.integers(0, 255)
+        labels[i, 40:, x + 3 : x + 33] = 1  # the parse's outline is off by 3 px
+    assert moving_regions(frames, labels) == []
+    frames[:, 5:25, 70:90] = rng.integers(0, 255, (40, 20, 20, 1))  # a screen: every frame another picture
+    found = moving_regions(frames, labels)
+    assert [m["region"] for m in found] == ["top right"] and found[0]["share"] > 0.3
 
 
 def test_split_head_torso_cuts_at_the_neck() -> None:

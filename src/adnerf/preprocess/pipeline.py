@@ -58,6 +58,7 @@ from .clothes import complete_torso
 from .cuts import find_cuts
 from .frame_grid import nominal_rate, regular_grid
 from .framing import Framing, auto_crop, parse_crop, plan_framing
+from .stillness import moving_regions
 from .headpose import project_points
 from .landmarks import (
     NOSE_BASE,
@@ -498,6 +499,16 @@ def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) ->
         msg = f"{video}: the background moves ({motion:.2f} px per frame): the camera does not look static; parsing, pose and the plate assume it is"
         warnings.warn(msg, stacklevel=2)
         _report_warning(doc, "warning", msg)
+    else:  # a still camera: does part of the background move (a screen, a window, a flag)?
+        doc["background_moving"] = moving_regions(frames, labels)
+        if doc["background_moving"]:
+            where = ", ".join(f"{m['region']} ({m['share']:.0%} of its background)" for m in doc["background_moving"][:3])
+            msg = (
+                f"{video}: part of the background moves while the camera stands still: {where}; the plate holds one still picture "
+                "there (a screen, a window or a moving object behind the person: film without it, or cover it)"
+            )
+            warnings.warn(msg, stacklevel=2)
+            _report_warning(doc, "background_warning", msg)
     work.save("parsing", labels)
     work.save_json("parse", doc)
     return doc
