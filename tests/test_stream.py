@@ -4,6 +4,7 @@ frames come out while the speech is still arriving, no later than the stated loo
 from __future__ import annotations
 
 import io
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -151,8 +152,10 @@ def test_stream_refuses_what_it_cannot_stream(run) -> None:  # noqa: ANN001
         run.meta["feature_kind"] = "logmel"
 
 
-def test_adnerf_stream_writes_the_mp4_from_a_file_and_from_stdin(run, speech: Path, tmp_path: Path) -> None:  # noqa: ANN001
-    assert main(["stream", str(run.root), "--audio", str(speech), "-o", str(tmp_path / "file.mp4"), "--chunk-ms", "20"]) == 0
+def test_adnerf_stream_writes_the_mp4_from_a_file_and_from_stdin(run, speech: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:  # noqa: ANN001
+    assert main(["stream", str(run.root), "--audio", str(speech), "-o", str(tmp_path / "file.mp4"), "--chunk-ms", "20", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert 0.25 < summary["lookahead_s"] < 0.35 and summary["first_frame_s"] > 0 and summary["realtime_factor"] > 0
     v = read_video(tmp_path / "file.mp4")
     n = int(np.floor(read_audio(speech).duration * 25.0))
     assert len(v.frames) == n and v.audio is not None and abs(v.audio.duration - 1.5) < 0.1

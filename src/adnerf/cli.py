@@ -552,6 +552,9 @@ def _cmd_stream(args: argparse.Namespace) -> int:
             run, args.audio, args.output, chunk_s=args.chunk_ms / 1000.0, yaw=args.yaw, pitch=args.pitch, roll=args.roll,
             blink=args.blink, background=args.background, frames_dir=args.frames, progress=lambda n: bar.update(n - bar.n),
         )  # fmt: skip
+    if args.json:
+        print(json.dumps(summary))
+        return 0
     first = "-" if summary["first_frame_s"] is None else f"{summary['first_frame_s']:.2f} s"
     print(
         f"{summary['output']}: {summary['frames']} frames, {summary['audio_seconds']:.2f} s of speech; look-ahead {summary['lookahead_s'] * 1000:.0f} ms, "
@@ -819,6 +822,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--frames", default=None, help="also write the frames as PNGs into this folder as they come")
     st.add_argument("--overwrite", action="store_true", help="replace an existing output .mp4 and frame PNGs")
     st.add_argument("--device", default="cpu", help="cpu or cuda")
+    st.add_argument("--json", action="store_true", help="print the summary (frames, look-ahead, first-frame latency, real-time factor) as one JSON object")
     st.add_argument("-o", "--output", required=True, help="output .mp4")
     st.set_defaults(func=_cmd_stream)
 
