@@ -62,6 +62,14 @@ def dig(doc: dict, *keys: str) -> Any:
     return doc
 
 
+def section(title: str, *blocks: str) -> list[str]:
+    """A page section: its heading, then each block (a paragraph, a table, an image) and a blank line."""
+    out = [f"## {title}", ""]
+    for block in blocks:
+        out += [block, ""]
+    return out
+
+
 def label(text: str) -> str:
     """A run's description up to its first ``;`` (the rest is the command, kept in the JSON)."""
     return text.split(";")[0].strip()
@@ -254,23 +262,19 @@ def real_short() -> list[str]:
 
 def voices() -> list[str]:
     v = load("voices.json")
-    return [
-        "## Any voice: `adnerf bench voices` (synthetic scene, exact truth)",
-        "",
+    return section(
+        "Any voice: `adnerf bench voices` (synthetic scene, exact truth)",
         f"Trained on {num(v['training_voice']['seconds'], 0)} s of `{v['training_voice']['speaker']}` at "
         f"{v['training_voice']['words_per_minute']} words/min ({v['size']} px, {v['head_iters']} + {v['torso_iters']} iterations, {v['device']}); "
         f"driven by {num(v['drive_seconds'], 0)} s of new sentences per voice. Correlation of the rendered jaw with the true one "
         "(mean absolute error); the reader's own figure on exact renders beside it:",
-        "",
         table(
             ["driving speech", "frames"] + [f"`{k}`" for k in v["kinds"]] + ["reader on truth"],
             [[r["voice"], num(r["frames"])] + [f"{num(r[k]['corr'])} ({num(r[k]['mean_abs_error'], 3)})" for k in v["kinds"]] + [num(r["reader_on_truth"]["corr"], 3)]
              for r in v["rows"]],
         ),
-        "",
         "![the true jaw and the rendered jaw for each driving voice](bench/voices.png)",
-        "",
-    ]
+    )
 
 
 def demo_cpu() -> list[str]:
@@ -285,7 +289,7 @@ def demo_cpu() -> list[str]:
     rows.append(["training time (s)", num(m.get("train_seconds"), 0), ""])
     rows.append(["wall time of the whole demo (s)", num(d["wall_seconds"], 0), d["bars"].get("wall_seconds", "")])
     rows.append(["peak RSS (GiB)", num(d["peak_rss_gib"]), ""])
-    return ["## The demo on a CPU", "", f"`{d['command']}` ({d['machine']}).", "", table(["figure", "measured", "bar"], rows), ""]
+    return section("The demo on a CPU", f"`{d['command']}` ({d['machine']}).", table(["figure", "measured", "bar"], rows))
 
 
 def fields_cpu() -> list[str]:
@@ -299,35 +303,28 @@ def fields_cpu() -> list[str]:
         body.append([f"`{r['config']}`"] + [num(psnr.get(t)) for t in times]
                     + [num(r["iterations"]), f"{r['train_samples_per_s'] / 1e3:.0f}k", num(r["render_fps"]), f"{r['peak_memory_mb'] / 1024:.1f}", to_ref])
     first = rows[0]
-    return [
-        "## Field configurations: held-out PSNR against training time",
-        "",
+    return section(
+        "Field configurations: held-out PSNR against training time",
         f"`adnerf bench fields --json --plot fields.png` ({first['size']}x{first['size']} px, {first['device']}, {first['machine']}): "
         "each configuration trains the synthetic scene's head for the same wall time; the clock stops while the PSNR (dB) is "
         "measured on fixed held-out head rays.",
-        "",
         table(["configuration"] + [f"{t:g} s" for t in times] + ["iterations", "samples/s", "head fps", "peak GiB", "reaches the paper's final PSNR"], body),
-        "",
         "![held-out PSNR against training time](bench/fields_cpu.png)",
-        "",
-    ]
+    )
 
 
 def render_cpu() -> list[str]:
     d = load("render_cpu.json")
     rows = d["rows"]
-    return [
-        "## Quadrature error against samples per ray",
-        "",
+    return section(
+        "Quadrature error against samples per ray",
         f"`{d['command']}` ({d['machine']}): a uniform-density sphere against its closed-form opacity and expected depth, "
         f"{rows[0]['rays']} rays in {rows[0]['dtype']}; *importance* spends half the samples on a stratified coarse pass and half "
         "on inverse-CDF samples from its blurred weights.",
-        "",
         table(["samples / ray", "method", "opacity rel. error", "depth rel. error", "s / million rays"],
               [[num(r["samples_per_ray"]), r["method"], f"{r['opacity_rel_err']:.2e}", f"{r['depth_rel_err']:.2e}", num(r["seconds_per_mrays"])] for r in rows],
               align="rlrrr"),
-        "",
-    ]
+    )
 
 
 def gpu() -> list[str]:
@@ -401,16 +398,13 @@ STEPS = ("decode", "features", "parse", "face", "pose", "plate", "write")
 def webcam() -> list[str]:
     d = load("real_webcam.json")
     rows = d["rows"]
-    out = [
-        "## Footage as people film it: a webcam frame, cropped to the person",
-        "",
+    out = section(
+        "Footage as people film it: a webcam frame, cropped to the person",
         f"{d['what']}; `{d['command']}` ({d['machine']}). Seconds per step:",
-        "",
         table(["step"] + [r["clip"] for r in rows], [[k] + [num(r["timings_s"].get(k), 1) for r in rows] for k in STEPS]
               + [["wall (s)"] + [num(r["wall_seconds"], 0) for r in rows], ["peak RSS (GiB)"] + [num(r["peak_rss_gib"]) for r in rows],
                  ["crop (source px)"] + ["—" if r["crop"] is None else "{}x{} at ({}, {})".format(r["crop"][2], r["crop"][3], r["crop"][0], r["crop"][1]) for r in rows]]),
-        "",
-    ]
+    )
     if (BENCH / "paste_back.json").exists():
         pb = load("paste_back.json")
         out += [
