@@ -160,3 +160,25 @@ def test_a_talking_head_without_an_edit_has_no_cut(webcam: tuple[Path, Path]) ->
     for video in (scene / "video.mp4", wide):  # the head turns and speaks; the picture never jumps
         cuts = find_cuts(read_video(video).frames)
         assert cuts.frames == [] and cuts.changed.max() < 0.05
+
+
+def test_features_trims_frames_and_sound_as_preprocess_does(tmp_path: Path) -> None:
+    """``adnerf features --start 1 --end 2.6`` on a 10 fps video with clicks at 0.95 s and 1.5 s:
+    frames from 1.0 s up to 2.6 s (16), the 1.5 s click at the centre of frame 5's window, and the
+    click before the start not heard at all (the sound is cut with the frames)."""
+    from adnerf.cli import main
+    from adnerf.io import AudioTrack, write_video
+
+    sr, fps = 16000, 10.0
+    x = np.zeros(3 * sr, np.float32)
+    for t in (0.95, 1.5):
+        x[int(t * sr) : int(t * sr) + 80] = 0.9
+    video = write_video(tmp_path / "clicks.mp4", np.zeros((30, 32, 32, 3), np.uint8), fps, AudioTrack(x, sr, 0.0))
+    out = tmp_path / "f.npy"
+    assert main(["features", str(video), "-o", str(out), "--kind", "logmel", "--start", "1", "--end", "2.6"]) == 0
+    windows = np.load(out)
+    assert windows.shape[0] == 16
+    loud = windows.mean(2)  # (N, 16): each window's loudness by column
+    assert loud[5].argmax() == 8  # the 1.5 s click: frame 5 (1.5 s) at its window's centre column
+    assert loud[0].max() < loud[5].max() - 5  # the 0.95 s click is not in frame 0's window (0.84-1.14 s)
+    assert main(["features", str(video), "-o", str(tmp_path / "g.npy"), "--start", "2", "--end", "1"]) == 2

@@ -260,7 +260,7 @@ def _cmd_features(args: argparse.Namespace) -> int:
         save_npy_atomic,
         speech_windows,
     )
-    from .io import MediaError, frame_times, probe, read_audio
+    from .io import MediaError, audio_span, frame_times, probe, read_audio
     from .outputs import check_file_output
 
     media, out = Path(args.media), Path(args.output)
@@ -278,6 +278,16 @@ def _cmd_features(args: argparse.Namespace) -> int:
             fps = 25.0 if args.fps is None else args.fps
             times = np.arange(max(1, math.ceil(audio.duration * fps))) / fps + audio.start
             source = f"{fps:g} fps"
+        if args.start or args.end is not None:  # a trim, as preprocess cuts it: frames and sound alike
+            if args.end is not None and not args.end > args.start:
+                raise CliError(f"a trim needs 0 <= start < end; got --start {args.start:g}, --end {args.end:g}")
+            t0 = float(times[0])
+            keep = (times >= t0 + args.start - 1e-6) & (True if args.end is None else times < t0 + args.end - 1e-6)
+            if not keep.any():
+                raise CliError(f"{media}: no frame from {args.start:g} s on (the trim's start lies past the clip's end)")
+            times = times[keep]
+            audio = audio_span(audio, t0 + args.start, None if args.end is None else t0 + args.end)
+            source += f", {args.start:g}-{'end' if args.end is None else f'{args.end:g} s'}"
         with tqdm(total=round(audio.duration, 1), unit="s", desc=f"{args.kind} features", disable=audio.duration < 30 or None) as bar:
             spec = FeatureSpec(args.kind, model_dir=args.model_dir)
             windows = speech_windows(audio, times, spec, progress=lambda n: bar.update(round(n / MODEL_RATE, 2)))
@@ -705,6 +715,8 @@ def build_parser() -> argparse.ArgumentParser:
     feats.add_argument("--kind", choices=("phonemes", "logmel", "wav2vec2"), default="phonemes", help="extractor (default: phonemes, hama's IPA log-probs)")
     feats.add_argument("--model-dir", default=None, help="local wav2vec2 / HuBERT model directory for --kind wav2vec2")
     feats.add_argument("--fps", type=_positive, default=None, help="frame rate (> 0) for audio-only input (default 25); overrides a video's timestamps")
+    feats.add_argument("--start", type=_number(float, 0.0), default=0.0, help="seconds from the first frame (or the audio's start) to begin at, as preprocess --start: earlier frames and sound are left out")
+    feats.add_argument("--end", type=_number(float, 0.0, open_lo=True), default=None, help="seconds from the first frame to stop at (frames and sound from then on are left out)")
     feats.add_argument("--overwrite", action="store_true", help="replace an existing output file (never an input)")
     feats.set_defaults(func=_cmd_features)
 

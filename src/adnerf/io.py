@@ -33,7 +33,7 @@ import numpy as np
 from .atomic import atomic_path
 from .memory import require
 
-__all__ = ["AudioTrack", "FrameReader", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "read_audio", "read_image", "read_video", "write_video"]
+__all__ = ["AudioTrack", "FrameReader", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "audio_span", "read_audio", "read_image", "read_video", "write_video"]
 
 
 class MediaError(RuntimeError):
@@ -280,7 +280,7 @@ def _decode_audio(path: Path, container, sample_rate: int | None, *, partial: li
     return AudioTrack(samples=samples, sample_rate=target_rate, start=start or 0.0)
 
 
-def _audio_span(track: AudioTrack, t0: float, t1: float | None) -> AudioTrack:
+def audio_span(track: AudioTrack, t0: float, t1: float | None) -> AudioTrack:
     """The part of ``track`` between container times ``t0`` and ``t1`` (``None``: to its end),
     keeping its clock (``start`` is when its first kept sample plays)."""
     rate = track.sample_rate
@@ -407,7 +407,7 @@ def read_video(
                 faults: list[str] = []
                 track = _decode_audio(p, container, audio_rate, partial=faults)
                 if (start or end is not None) and first_time is not None:
-                    track = _audio_span(track, first_time + start, None if end is None else first_time + end)
+                    track = audio_span(track, first_time + start, None if end is None else first_time + end)
                 if faults:
                     truncated = "; ".join(x for x in (truncated, *faults) if x)
     order = np.argsort(np.asarray(times), kind="stable")
