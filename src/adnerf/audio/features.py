@@ -279,10 +279,25 @@ def frame_windows(features: np.ndarray, frame_times: np.ndarray, *, feature_star
     """
     if features.ndim != 2 or features.shape[0] == 0:
         raise ValueError(f"features must have shape (T >= 1, D); got {features.shape}")
+    return features[_window_index(frame_times, feature_start, features.shape[0], rate, window)]
+
+
+def _window_index(frame_times: np.ndarray, feature_start: float, n_features: int | None, rate: float = FEATURE_RATE, window: int = WINDOW) -> np.ndarray:
+    """The feature indices ``(N, window)`` of each frame's window (:func:`frame_windows`), clipped to
+    ``[0, n_features)`` (``None``: not clipped above)."""
     centre = np.rint((np.asarray(frame_times, dtype=np.float64) - feature_start) * rate).astype(np.int64)
-    offsets = np.arange(window) - window // 2
-    idx = np.clip(centre[:, None] + offsets[None, :], 0, features.shape[0] - 1)
-    return features[idx]
+    idx = centre[:, None] + (np.arange(window) - window // 2)[None, :]
+    return np.clip(idx, 0, None if n_features is None else n_features - 1)
+
+
+PAD_S = (WINDOW // 2 + 1) / FEATURE_RATE  # silence speech_windows puts around the frames' windows
+
+
+def _silence_after(begin: float, before: int, n_samples: int, rate: int, start: float, last_time: float) -> int:
+    """Samples of silence :func:`speech_windows` appends to a track of ``n_samples`` that starts at
+    ``start`` (padded with ``before`` samples from ``begin``) so that the last frame's window fits."""
+    end = max(start + n_samples / rate, last_time + PAD_S)
+    return max(0, int(math.ceil((end - begin) * rate)) - before - n_samples)
 
 
 def _cache_key(audio: AudioTrack, frame_times: np.ndarray, spec: FeatureSpec) -> str:
@@ -324,12 +339,10 @@ def speech_windows(
         cache_file = Path(cache_dir) / f"features_{spec.kind}_{_cache_key(audio, frame_times, spec)}.npy"
         if cache_file.exists():
             return np.load(cache_file)
-    half = (WINDOW // 2 + 1) / FEATURE_RATE
-    begin = min(audio.start, float(frame_times.min()) - half)
-    end = max(audio.start + audio.duration, float(frame_times.max()) + half)
     sr = audio.sample_rate
+    begin = min(audio.start, float(frame_times.min()) - PAD_S)
     before = int(round((audio.start - begin) * sr))
-    after = max(0, int(math.ceil((end - begin) * sr)) - before - len(audio.samples))
+    after = _silence_after(begin, before, len(audio.samples), sr, audio.start, float(frame_times.max()))
     padded = AudioTrack(np.pad(audio.samples.astype(np.float32), (before, after)), sr, begin)
     feats = extract_features(padded, spec, progress)
     windows = frame_windows(feats, frame_times, feature_start=padded.start)
@@ -359,13 +372,16 @@ class StreamingWindows:
         if not (math.isfinite(fps) and fps > 0):
             raise ValueError(f"fps must be a positive number; got {fps}")
         self.fps, self.start, self.n_mels = float(fps), float(start), int(n_mels)
-        half = (WINDOW // 2 + 1) / FEATURE_RATE
-        self._begin = min(self.start, self.start - half)  # speech_windows' padded.start (frame 0 at start)
+        self._begin = min(self.start, self.start - PAD_S)  # speech_windows' padded.start (frame 0 at start)
         self._before = int(round((self.start - self._begin) * MODEL_RATE))
-        # The padded signal, itself padded by half an FFT on the left (logmel's centring).
+        # The padded signal, itself padded by half an FFT on the left (logmel's centring), from
+        # sample _xp_from on: what the next feature's FFT and later ones read.
         self._xp = np.zeros(N_FFT // 2 + self._before, np.float32)
+        self._xp_from = 0
         self._pushed = 0
-        self._feats = np.zeros((0, self.n_mels), np.float32)
+        self._n_feats = 0  # features computed
+        self._feats = np.zeros((0, self.n_mels), np.float32)  # features _feats_from .. _n_feats - 1: those windows to come read
+        self._feats_from = 0
         self._done = 0  # windows handed out
         self.finished = False
 
@@ -379,20 +395,31 @@ class StreamingWindows:
         """Windows handed out so far (frames ``0 .. frames_done - 1``)."""
         return self._done
 
+    def _times(self, first: int, last: int) -> np.ndarray:
+        return self.start + np.arange(first, last, dtype=np.float64) / self.fps
+
     def _features_to(self, count: int) -> None:
-        k = len(self._feats)
+        k = self._n_feats
         if count > k:
-            segment = self._xp[k * HOP : (count - 1) * HOP + N_FFT]
+            a = k * HOP - self._xp_from
+            segment = self._xp[a : a + (count - 1 - k) * HOP + N_FFT]
             self._feats = np.concatenate([self._feats, _logmel_frames(segment, self.n_mels)])
+            self._n_feats = count
+            drop = count * HOP - self._xp_from  # the next feature's FFT starts there
+            self._xp, self._xp_from = self._xp[drop:], self._xp_from + drop
 
-    def _centres(self, frames: np.ndarray) -> np.ndarray:
-        times = self.start + np.asarray(frames, dtype=np.float64) / self.fps
-        return np.rint((times - self._begin) * FEATURE_RATE).astype(np.int64)
-
-    def _windows(self, first: int, last: int, n_features: int) -> np.ndarray:
-        offsets = np.arange(WINDOW) - WINDOW // 2
-        idx = np.clip(self._centres(np.arange(first, last))[:, None] + offsets[None, :], 0, n_features - 1)
-        return self._feats[idx]
+    def _hand_out(self, last: int, n_features: int | None) -> np.ndarray:
+        """The windows of frames ``_done .. last - 1`` (indices clipped to ``n_features``), and the
+        features no later window reads let go."""
+        if last <= self._done:
+            return np.zeros((0, WINDOW, self.n_mels), np.float32)
+        idx = _window_index(self._times(self._done, last), self._begin, n_features)
+        out = self._feats[idx - self._feats_from]
+        self._done = last
+        keep = int(_window_index(self._times(last, last + 1), self._begin, n_features)[0, 0])  # the next window's first feature
+        if keep > self._feats_from:
+            self._feats, self._feats_from = self._feats[keep - self._feats_from :], keep
+        return out
 
     def push(self, samples: np.ndarray) -> np.ndarray:
         """Add 16 kHz mono samples; the windows that became final, ``(m, 16, n_mels)``, in frame order."""
@@ -406,11 +433,9 @@ class StreamingWindows:
         self._features_to(final)
         exist = int(math.floor(self._pushed / MODEL_RATE * self.fps))  # frames the audio already covers
         ready = self._done
-        while ready < exist and self._centres(np.array([ready]))[0] + WINDOW - WINDOW // 2 - 1 < final:
+        while ready < exist and _window_index(self._times(ready, ready + 1), self._begin, None)[0, -1] < final:
             ready += 1
-        out = self._windows(self._done, ready, max(final, 1)) if ready > self._done else np.zeros((0, WINDOW, self.n_mels), np.float32)
-        self._done = ready
-        return out
+        return self._hand_out(ready, None)
 
     def finish(self) -> np.ndarray:
         """End of the speech: the remaining windows (the track padded with silence as
@@ -421,19 +446,14 @@ class StreamingWindows:
         n = int(math.floor(self._pushed / MODEL_RATE * self.fps))
         if n < 1:
             return np.zeros((0, WINDOW, self.n_mels), np.float32)
-        half = (WINDOW // 2 + 1) / FEATURE_RATE
-        times_max = self.start + (n - 1) / self.fps
-        end = max(self.start + self._pushed / MODEL_RATE, times_max + half)
-        after = max(0, int(math.ceil((end - self._begin) * MODEL_RATE)) - self._before - self._pushed)
+        after = _silence_after(self._begin, self._before, self._pushed, MODEL_RATE, self.start, self.start + (n - 1) / self.fps)
         padded = self._before + self._pushed + after
         if padded < N_FFT:  # logmel's own padding of a signal shorter than an FFT
             after += N_FFT - padded
         self._xp = np.concatenate([self._xp, np.zeros(after + N_FFT // 2, np.float32)])
         total = padded // HOP + 1
         self._features_to(total)
-        out = self._windows(self._done, n, total)
-        self._done = n
-        return out
+        return self._hand_out(n, total)
 
 
 def save_npy_atomic(path: str | Path, array: np.ndarray) -> Path:
