@@ -27,7 +27,7 @@ from ..audio.features import (
 )
 from ..io import AudioTrack, MediaError, read_audio, read_image, write_video
 from ..model.blinks import count_blinks, eye_track
-from ..model.render_clip import RenderedClip, RenderError, checked_poses, render_frames  # re-exported: the command's refusals and its loop
+from ..model.render_clip import RenderedClip, RenderError, checked_poses, pingpong_index, render_frames  # re-exported: the command's refusals and its loop
 from ..model.run_folder import Run
 from ..lock import writes_folder
 from ..outputs import check_file_output, check_frames_folder
@@ -144,13 +144,9 @@ def plan_paste_back(meta: dict, paste_back: bool | None, *, source: str | Path |
 
 
 def pingpong(poses: np.ndarray, n: int) -> np.ndarray:
-    """``n`` poses taken from ``poses`` forwards, then backwards, and so on (no jump at the ends)."""
-    m = len(poses)
-    if m == 1:
-        return np.repeat(poses, n, axis=0)
-    period = 2 * (m - 1)
-    k = np.arange(n) % period
-    return poses[np.where(k < m, k, period - k)]
+    """``n`` poses taken from ``poses`` forwards, then backwards, and so on (no jump at the ends;
+    :func:`~adnerf.model.render_clip.pingpong_index`)."""
+    return poses[pingpong_index(np.arange(n), len(poses))]
 
 
 def load_poses(path: str | Path, n: int) -> np.ndarray:

@@ -23,7 +23,7 @@ from .pose_range import edit_poses, torso_reads
 from .run_folder import Run
 from .talking_head import FrameRender, render_frame
 
-__all__ = ["RenderError", "RenderedClip", "checked_poses", "frame_setup", "render_frames", "render_one"]
+__all__ = ["RenderError", "RenderedClip", "checked_poses", "frame_setup", "pingpong_index", "render_frames", "render_one"]
 
 
 class RenderError(ValueError):
@@ -54,6 +54,16 @@ class RenderedClip:
     head_opacity: np.ndarray
     torso_opacity: np.ndarray
     seconds: float
+
+
+def pingpong_index(j: int | np.ndarray, m: int) -> np.ndarray:
+    """The track frame shown at output frame(s) ``j`` of a track of ``m`` frames played forwards,
+    then backwards, and so on (no jump at the ends): how ``render`` plays the training poses."""
+    if m == 1:
+        return np.zeros_like(np.asarray(j))
+    period = 2 * (m - 1)
+    k = np.asarray(j) % period
+    return np.where(k < m, k, period - k)
 
 
 def frame_setup(run: Run, plate: np.ndarray) -> tuple[Camera, torch.Tensor]:

@@ -26,19 +26,10 @@ from ..audio.features import MODEL_RATE, StreamingWindows
 from ..io import read_audio, read_image
 from .blinks import blink_track
 from .pose_range import edit_poses, torso_reads
-from .render_clip import RenderError, checked_poses, frame_setup, render_one
+from .render_clip import RenderError, checked_poses, frame_setup, pingpong_index, render_one  # pingpong_index: re-exported
 from .run_folder import Run
 
 __all__ = ["Streamer", "pingpong_index", "stream_file_chunks"]
-
-
-def pingpong_index(j: int, m: int) -> int:
-    """The track frame shown at output frame ``j`` of a track of ``m`` frames played forwards,
-    then backwards, and so on (as ``render`` plays the training poses)."""
-    if m == 1:
-        return 0
-    k = j % (2 * (m - 1))
-    return k if k < m else 2 * (m - 1) - k
 
 
 class Streamer:
@@ -143,7 +134,7 @@ class Streamer:
         local = torch.as_tensor(self._held[lo - self._held_from : hi - self._held_from], device=self.plate.device)
         with torch.no_grad():
             code = model.frame_codes(local, [i - lo])[0]  # neighbours clamped at the clip's ends as offline
-        track = self.track[pingpong_index(i, len(self.track))][None]
+        track = self.track[int(pingpong_index(i, len(self.track)))][None]
         pose = edit_poses(track, self.angles[None])[0]
         reads = torso_reads("track", track, pose[None], self.run.pose_range)
         read = None if reads is None or not self.angles.any() else reads[0]
