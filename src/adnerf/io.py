@@ -33,7 +33,7 @@ import numpy as np
 from .atomic import atomic_path
 from .memory import require
 
-__all__ = ["AudioTrack", "FrameReader", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "audio_span", "read_audio", "read_image", "read_video", "write_video"]
+__all__ = ["AudioTrack", "FrameReader", "MediaError", "Video", "VideoWriter", "frame_times", "probe", "audio_span", "read_audio", "read_image", "read_rgb", "read_video", "write_video"]
 
 
 class MediaError(RuntimeError):
@@ -424,9 +424,8 @@ def read_video(
     )
 
 
-def read_image(path: str | Path, height: int, width: int) -> np.ndarray:
-    """An RGB image cropped to the aspect of ``(height, width)`` about its centre and resized (area
-    resampling) to ``(height, width, 3)`` float32 in [0, 1].
+def read_rgb(path: str | Path) -> np.ndarray:
+    """An image file as uint8 RGB ``(H, W, 3)``.
 
     Raises:
         MediaError: A missing or unreadable image.
@@ -434,7 +433,17 @@ def read_image(path: str | Path, height: int, width: int) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise MediaError(f"{path}: missing or unreadable image")
-    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_image(path: str | Path, height: int, width: int) -> np.ndarray:
+    """An RGB image cropped to the aspect of ``(height, width)`` about its centre and resized (area
+    resampling) to ``(height, width, 3)`` float32 in [0, 1].
+
+    Raises:
+        MediaError: A missing or unreadable image.
+    """
+    img = read_rgb(path).astype(np.float32) / 255.0
     h, w = img.shape[:2]
     target = width / height
     if w / h > target:

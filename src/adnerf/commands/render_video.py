@@ -25,7 +25,7 @@ from ..audio.features import (
     load_npy_windows,
     speech_windows,
 )
-from ..io import AudioTrack, MediaError, read_audio, read_image, write_video
+from ..io import AudioTrack, MediaError, read_audio, read_image, read_rgb, write_video
 from ..model.blinks import count_blinks, eye_track
 from ..model.render_clip import RenderedClip, RenderError, checked_poses, pingpong_index, render_frames  # re-exported: the command's refusals and its loop
 from ..model.run_folder import Run
@@ -86,10 +86,10 @@ class PastePlan:
 
 
 def _read_rgb(path: str | Path, what: str) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise RenderError(f"{path}: missing or unreadable image ({what})")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    try:
+        return read_rgb(path)
+    except MediaError as exc:
+        raise RenderError(f"{exc} ({what})") from exc
 
 
 def plan_paste_back(meta: dict, paste_back: bool | None, *, source: str | Path | None = None, still_frame: str | Path | None = None, background: str | Path | None = None) -> PastePlan | None:
@@ -163,9 +163,14 @@ def load_poses(path: str | Path, n: int) -> np.ndarray:
     return checked_poses(poses.astype(np.float64), str(p))
 
 
+def frame_name(i: int) -> str:
+    """The name of frame ``i``'s image written by ``--frames``: ``000000.png``, ..."""
+    return f"{i:06d}.png"
+
+
 def frame_names(n: int) -> list[str]:
-    """The names of ``n`` frame images written by ``--frames``: ``000000.png``, ..."""
-    return [f"{i:06d}.png" for i in range(n)]
+    """The names of ``n`` frame images written by ``--frames``."""
+    return [frame_name(i) for i in range(n)]
 
 
 def check_render_outputs(out: str | Path, frames_dir: str | Path | None, *, inputs: list, overwrite: bool = False) -> None:

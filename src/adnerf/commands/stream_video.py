@@ -21,7 +21,7 @@ from ..io import VideoWriter
 from ..model.render_clip import RenderError
 from ..model.run_folder import Run
 from ..model.stream import Streamer, stream_file_chunks
-from .render_video import frame_names, load_background
+from .render_video import frame_name, load_background
 
 __all__ = ["pcm_chunks", "stream_to_video"]
 
@@ -86,7 +86,7 @@ def stream_to_video(
             nonlocal n
             for frame in frames:
                 writer.write(frame)
-                if folder is not None and not cv2.imwrite(str(folder / frame_names(n + 1)[-1]), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR)):
+                if folder is not None and not cv2.imwrite(str(folder / frame_name(n)), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR)):
                     raise RenderError(f"{folder}: could not write frame {n}")
                 n += 1
                 if progress is not None:
