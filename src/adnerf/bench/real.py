@@ -314,6 +314,7 @@ def bench_real(
         lips = {"unavailable": str(exc)}
     elapsed = run.elapsed
     report = json.loads(report_path.read_text())
+    peak = peak_rss_bytes()  # this process's, the training included
     return {
         "video": str(video),
         **info,
@@ -329,7 +330,7 @@ def bench_real(
         "train_seconds": elapsed["head"] + elapsed["torso"],
         "seconds_per_step": {stage: round(elapsed[stage] / max(iters, 1), 4) for stage, iters in (("head", run.train_config.head_iters), ("torso", run.train_config.torso_iters))},
         "data_bytes_per_frame": frame_bytes(ds.meta),
-        "peak_rss_gib": None if peak_rss_bytes() is None else round(peak_rss_bytes() / 2**30, 2),  # this process's, the training included
+        "peak_rss_gib": None if peak is None else round(peak / 2**30, 2),
         "device": device,
         "layers": report.get("layers"),
         "lip_signal": lips,
