@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from pathlib import Path
 
 import cv2
@@ -405,6 +406,85 @@ def test_plate_is_the_median_of_background_and_inpaints_the_rest() -> None:
     seen = plate.seen > 0
     assert np.array_equal(plate.image[seen], truth[seen])
     assert np.all(plate.image[28:, 28:] > 0)  # filled, not left black
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 8])
+def test_median_plate_equals_the_masked_median(n: int) -> None:
+    """The partition-based median equals numpy's nanmedian of the background values (the mean of
+    the middle two for even counts, rounded half to even) for every count of background frames a
+    pixel can have, odd and even, none included; a wrong rank (off by one) or a wrong number of
+    low fillers moves it."""
+    from adnerf.preprocess.plate import median_plate
+
+    rng = np.random.default_rng(n)
+    frames = rng.integers(0, 256, (n, 6, 40, 3)).astype(np.uint8)
+    person = np.zeros((n, 6, 40), bool)
+    for col in range(40):  # column col hides the pixel in (col % (n + 1)) frames, chosen at random
+        for row in range(6):
+            person[rng.permutation(n)[: (col + row) % (n + 1)], row, col] = True
+    block = frames.astype(np.float64)
+    block[person] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ref = np.nanmedian(block, axis=0)
+    plate, count = median_plate(frames, person, margin=0, rows_per_chunk=4)
+    assert np.array_equal(count, n - person.sum(0))
+    seen = count > 0
+    assert (~seen).any() and (count % 2 == 1).any() and (n < 3 or (count % 2 == 0)[seen].any())
+    assert np.array_equal(plate[seen], np.round(ref[seen]).astype(np.uint8))
+    assert not plate[~seen].any()
+
+
+def test_frozen_grabcut_ignores_which_probable_class_a_pixel_starts_in() -> None:
+    """The classical parser's pass 2 seeds frames that pass 1 did not cut with the person hull
+    instead of pass 1's cut: right only because GrabCut with frozen colour models scores every
+    probable pixel by both models, whatever its starting class. Two masks with the same sure
+    pixels and opposite probable classes cut alike."""
+    frames, _ = _close_crop_clip(n=4)
+    img = cv2.cvtColor(frames[1], cv2.COLOR_RGB2BGR)
+    rng = np.random.default_rng(0)
+    sure = np.full(img.shape[:2], 255, np.uint8)
+    sure[:, :4], sure[-6:, 28:36] = cv2.GC_BGD, cv2.GC_FGD
+    a = np.where(rng.random(img.shape[:2]) < 0.5, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+    a[sure != 255] = sure[sure != 255]
+    b = a.copy()
+    probable = sure == 255
+    b[probable] = np.where(a[probable] == cv2.GC_PR_FGD, cv2.GC_PR_BGD, cv2.GC_PR_FGD)
+    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    cv2.grabCut(img, a.copy(), None, bgd, fgd, 2, cv2.GC_INIT_WITH_MASK)
+    cuts = []
+    for m in (a.copy(), b.copy()):
+        cv2.grabCut(img, m, None, bgd.copy(), fgd.copy(), 1, cv2.GC_EVAL_FREEZE_MODEL)
+        cuts.append(np.isin(m, (cv2.GC_FGD, cv2.GC_PR_FGD)))
+    assert 0.05 < cuts[0].mean() < 0.95  # a real cut, not all one class
+    assert np.array_equal(cuts[0], cuts[1])
+
+
+def test_classical_parser_cuts_a_long_clip_about_once_a_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Pass 1 (whose cuts only make the plate) cuts at most ``plate_frames`` frames plus the
+    statistics' frames; pass 2 cuts every frame. The person is found as well as when pass 1 cuts
+    every frame."""
+    from adnerf.preprocess import parsing
+
+    frames, truth = _close_crop_clip(n=40)
+    calls = []
+    real = cv2.grabCut
+
+    def counted(img, mask, rect, bgd, fgd, iters, mode):  # type: ignore[no-untyped-def]
+        calls.append(mode)
+        return real(img, mask, rect, bgd, fgd, iters, mode)
+
+    monkeypatch.setattr(parsing.cv2, "grabCut", counted)
+    few = parsing.ClassicalParser(max_stat_frames=8, plate_frames=10).parse(frames) > 0
+    frozen = calls.count(cv2.GC_EVAL_FREEZE_MODEL)
+    assert 40 < frozen <= 40 + 18, frozen
+    calls.clear()
+    every = parsing.ClassicalParser(max_stat_frames=8, plate_frames=40).parse(frames) > 0
+    assert calls.count(cv2.GC_EVAL_FREEZE_MODEL) == 80
+    for person in (few, every):
+        assert ((person & truth).sum((1, 2)) / truth.sum((1, 2))).min() > 0.95
+        assert ((~person & ~truth).sum((1, 2)) / (~truth).sum((1, 2))).min() > 0.9
+    assert (few == every).mean() > 0.99
 
 
 def test_astronaut_in_plane_motion_is_recovered() -> None:

@@ -83,8 +83,16 @@ def _centres(lab: np.ndarray, k: int = 4) -> np.ndarray:
 def _nearer_clothes(lab: np.ndarray, clothes: np.ndarray, wall: np.ndarray) -> np.ndarray:
     """Whether each colour ``(..., 3)`` lies nearer the clothes' centres than the wall's."""
 
-    def nearest(centres: np.ndarray) -> np.ndarray:
-        return np.min(np.linalg.norm(lab[..., None, :] - centres, axis=-1), axis=-1)
+    channels = [np.ascontiguousarray(lab[..., j]) for j in range(3)]
+
+    def nearest(centres: np.ndarray) -> np.ndarray:  # the Euclidean distance, a centre at a time (no (..., k, 3) temporary)
+        best = None
+        for centre in centres.astype(lab.dtype):
+            d = (channels[0] - centre[0]) ** 2
+            d += (channels[1] - centre[1]) ** 2
+            d += (channels[2] - centre[2]) ** 2
+            best = d if best is None else np.minimum(best, d, out=best)
+        return np.sqrt(best)
 
     return nearest(clothes) < nearest(wall)
 

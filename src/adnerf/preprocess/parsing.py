@@ -336,8 +336,8 @@ class ClassicalParser:
     2. **GrabCut, pass 1**: colour models of person and background are fitted on a few frames with
        the hull as "probably person" and everything else as background (when the hull covers
        nearly the whole frame, as in a close crop: the moving pixels as "probably person" and the
-       still ones as "probably background"), then every frame is cut
-       with the models frozen.
+       still ones as "probably background"), then up to ``plate_frames`` frames spread over the
+       clip are cut with the models frozen.
     3. **Plate and pass 2**: a background plate is the per-pixel median of the frames where the
        pixel was background; where the plate is known, a frame's difference from it gives sure
        person (> ``plate_high``) and background (< ``plate_low``; only "probably" inside the hull)
@@ -351,6 +351,8 @@ class ClassicalParser:
         plate_high: Lab distance from the plate above which a pixel is surely person.
         hull_margin: Pixels of margin around the person hull.
         max_stat_frames: Frames used for the temporal statistics.
+        plate_frames: Frames (spread over the clip) that pass 1 cuts and the plate is the median
+            of, so that a long clip costs one cut a frame, not two.
         min_outside: Fraction of the frame the hull must leave outside to seed the background
             (else pass 1 is seeded by motion alone).
     """
@@ -360,6 +362,7 @@ class ClassicalParser:
     plate_high: float = 25.0
     hull_margin: int = 4
     max_stat_frames: int = 80
+    plate_frames: int = 300
     min_outside: float = 0.02
     name: str = "classical"
     cuts_at_jaw: bool = False  # cuts at the neck's row; the pipeline re-splits with landmarks
@@ -373,22 +376,30 @@ class ClassicalParser:
         stat = np.linspace(0, n - 1, min(n, self.max_stat_frames)).round().astype(int)
         moving = self.moving_pixels(frames[stat])
         hull = person_hull(moving, self.hull_margin)
-        total = 2 * n
+        # Pass 1 cuts the frames the plate is the median of: at most plate_frames of them, spread
+        # over the clip (and the statistics' frames, which both passes fit their models on).
+        sub = np.union1d(stat, np.linspace(0, n - 1, min(n, self.plate_frames)).round().astype(int))
+        total = len(sub) + n
         first = self._first_seeds(hull, moving)
-        first_pass = grabcut_clip(frames, lambda i: first, stat, progress, 0, total)
-        plate, seen = self._plate(frames, first_pass)
+        first_pass = grabcut_clip(frames[sub] if len(sub) < n else frames, lambda i: first, np.searchsorted(sub, stat), progress, 0, total)
+        plate, seen = self._plate(frames[sub] if len(sub) < n else frames, first_pass)
         plate_lab = _lab(plate[None])[0]
+        in_sub = np.full(n, -1)
+        in_sub[sub] = np.arange(len(sub))
 
         def seeds(i: int) -> np.ndarray:  # made when its frame is cut, not held for the clip
             d = np.linalg.norm(_lab(frames[i][None])[0] - plate_lab, axis=-1)
-            m = np.where(first_pass[i], cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+            # Which probable class a pixel starts in does not change a cut with frozen models
+            # (GrabCut scores both by the colour models); outside pass 1 the hull stands in.
+            prior = first_pass[in_sub[i]] if in_sub[i] >= 0 else hull
+            m = np.where(prior, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
             m[seen & (d > self.plate_high)] = cv2.GC_FGD
             m[seen & (d < self.plate_low) & ~hull] = cv2.GC_BGD
             m[seen & (d < self.plate_low) & hull] = cv2.GC_PR_BGD
             m[~hull] = np.where(m[~hull] == cv2.GC_FGD, cv2.GC_PR_FGD, cv2.GC_BGD)
             return m
 
-        person = grabcut_clip(frames, seeds, stat, progress, n, total)
+        person = grabcut_clip(frames, seeds, stat, progress, len(sub), total)
         labels = np.empty((n, h, w), np.uint8)
         for i, label in enumerate(in_threads(lambda i: split_head_torso(_fill_holes(_largest_component(person[i])))[0], range(n))):
             labels[i] = label
