@@ -167,7 +167,7 @@ def test_features_trims_frames_and_sound_as_preprocess_does(tmp_path: Path) -> N
     frames from 1.0 s up to 2.6 s (16), the 1.5 s click at the centre of frame 5's window, and the
     click before the start not heard at all (the sound is cut with the frames)."""
     from adnerf.cli import main
-    from adnerf.io import AudioTrack, write_video
+    from adnerf.io import write_video
 
     sr, fps = 16000, 10.0
     x = np.zeros(3 * sr, np.float32)

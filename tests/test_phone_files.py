@@ -4,7 +4,6 @@ late or ends early, a copy cut off mid-write. Each file is built here with PyAV.
 from __future__ import annotations
 
 import json
-import os
 import struct
 from fractions import Fraction
 from pathlib import Path

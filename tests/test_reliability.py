@@ -11,6 +11,7 @@ import math
 import os
 import shutil
 import stat
+import subprocess
 from pathlib import Path
 
 import cv2
