@@ -20,7 +20,7 @@ from adnerf.commands.render_video import audio_frames, render_frames
 from adnerf.evaluation.evaluate import head_metrics, image_metrics, mouth_boxes
 from adnerf.io import AudioTrack, read_video
 from adnerf.metrics import PSNR_CAP_DB, psnr, psnr_from_mse
-from adnerf.model.data import LABEL_HEAD, LABEL_TORSO, load_dataset
+from adnerf.formats.dataset import LABEL_HEAD, LABEL_TORSO, load_dataset
 from adnerf.model.talking_head import model_config
 from adnerf.model.train import TrainConfig, Trainer, load_run, train
 from adnerf.pose import HeadPose
@@ -115,7 +115,7 @@ def test_mouth_rays_are_drawn_around_the_mouth(scene: Path, tmp_path: Path) -> N
 
 
 def _tone(path: Path, seconds: float = 1.0) -> Path:
-    from adnerf.model.data import write_wav
+    from adnerf.formats.dataset import write_wav
 
     t = np.arange(int(16000 * seconds)) / 16000.0
     write_wav(path, AudioTrack((0.3 * np.sin(2 * np.pi * 220 * t) * (1 + np.sin(2 * np.pi * 3 * t))).astype(np.float32), 16000))
@@ -214,3 +214,39 @@ def test_the_audio_of_frames_is_what_plays_under_them(scene: Path) -> None:
     np.testing.assert_array_equal(piece.samples, ds.audio.samples[round(10 * per_frame) : round(14 * per_frame)])
     tail = ds.audio_of(ds.meta.n_frames - 1, ds.meta.n_frames + 2)  # past the end: silence
     assert len(tail.samples) == round(3 * per_frame) and not tail.samples[round(2 * per_frame) :].any()
+
+
+# ---- the folders' formats
+
+
+def test_every_file_a_dataset_holds_is_named_by_its_folder_class(scene: Path) -> None:
+    """The synthetic writer goes through :class:`DatasetFolder`: each file it wrote is one of the
+    class's paths (a writer that spelled a name of its own would leave a file the class does not
+    know, and readers would not find it)."""
+    from adnerf.formats.dataset import TRUTH_FILES, DatasetFolder
+
+    files = DatasetFolder(scene)
+    named = {getattr(files, name) for name, member in vars(DatasetFolder).items() if isinstance(member, property)}
+    meta = load_dataset(scene, truth=False).meta
+    named |= {files.frame(i) for i in range(meta.n_frames)} | {files.labels(i) for i in range(meta.n_frames)}
+    named |= {files.truth_file(k) for k in TRUTH_FILES}
+    written = {p for p in scene.rglob("*") if p.is_file()}
+    assert written and written <= named, sorted(str(p.relative_to(scene)) for p in written - named)
+    assert files.is_dataset() and not DatasetFolder(scene / "nowhere").is_dataset()
+
+
+def test_a_run_folder_gives_its_scene_and_training_seconds(scene: Path, run: Path) -> None:
+    """``RunFolder.meta()`` is the dataset's scene (camera, boxes, feature kind) with every frame
+    a training frame (a run stores no split); ``elapsed()`` the checkpoint's seconds per stage."""
+    from adnerf.formats.run_folder import RunError, RunFolder
+
+    folder, ds = RunFolder(run), load_dataset(scene, truth=False)
+    got = folder.meta()
+    assert got.intrinsics == ds.meta.intrinsics and got.head_aabb == ds.meta.head_aabb and got.feature_kind == ds.meta.feature_kind
+    assert got.train == list(range(ds.meta.n_frames)) and got.test == []
+    assert torch.equal(got.camera().K, ds.meta.camera().K)
+    seconds = folder.elapsed()
+    assert set(seconds) == {"head", "torso"} and seconds["head"] > 0 and seconds["torso"] > 0
+    assert folder.is_run() and not RunFolder(scene).is_run()
+    with pytest.raises(RunError, match="no run.json"):
+        RunFolder(scene).doc()

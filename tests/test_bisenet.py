@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from adnerf.cli import main
-from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
+from adnerf.formats.dataset import LABEL_HEAD, LABEL_TORSO
 from adnerf.preprocess.bisenet import (
     CELEBAMASK_TO_LABEL,
     IMAGENET_MEAN,

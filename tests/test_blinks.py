@@ -27,7 +27,7 @@ from adnerf.model.conditions import (
     FrameCondition,
     eye_code,
 )
-from adnerf.model.data import load_dataset
+from adnerf.formats.dataset import load_dataset
 from adnerf.model.layers import RadianceLayer
 from adnerf.model.train import TrainConfig, Trainer, load_run, train
 from adnerf.pose import HeadPose
@@ -233,7 +233,7 @@ def test_a_clip_that_never_blinks_trains_a_head_without_the_eye(scene: Path, tmp
 
 def test_eye_rays_are_drawn_around_both_eyes_and_blinking_frames_more_often(scene: Path, tmp_path: Path) -> None:
     from adnerf.model.blinks import BLINKING
-    from adnerf.model.data import EYE_CROP
+    from adnerf.formats.dataset import EYE_CROP
     from adnerf.model.talking_head import model_config
     from adnerf.model.train import Trainer
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import skimage
 
-from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
+from adnerf.formats.dataset import LABEL_HEAD, LABEL_TORSO
 from adnerf.preprocess.clothes import complete_torso
 from adnerf.preprocess.landmarks import DlibFaceDetector
 

@@ -19,7 +19,7 @@ from adnerf.analytic import UniformSphere
 from adnerf.cameras import intrinsics_matrix, pixel_rays
 from adnerf.commands.render_video import render_frames
 from adnerf.model.blinks import blinks_in
-from adnerf.model.data import load_dataset
+from adnerf.formats.dataset import load_dataset
 from adnerf.model.talking_head import model_config
 from adnerf.model.train import TrainConfig, Trainer, load_run, train
 from adnerf.occupancy import OccupancyGrid

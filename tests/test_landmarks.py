@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
+from adnerf.formats.dataset import LABEL_HEAD, LABEL_TORSO
 from adnerf.preprocess.landmarks import (
     BROWS,
     EYES,

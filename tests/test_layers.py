@@ -13,7 +13,7 @@ from torch import Tensor, nn
 from adnerf.cameras import Camera
 from adnerf.fields import FieldOutput
 from adnerf.model.conditions import FrameCondition
-from adnerf.model.data import SceneMeta
+from adnerf.formats.dataset import SceneMeta
 from adnerf.model.layers import RadianceLayer
 from adnerf.model.talking_head import (
     ModelConfig,

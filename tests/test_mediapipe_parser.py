@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
+from adnerf.formats.dataset import LABEL_HEAD, LABEL_TORSO
 from adnerf.preprocess.mediapipe_parser import (
     MESH_CHEEKS,
     MESH_LOWER_JAW,
@@ -164,7 +164,7 @@ def test_mediapipe_parses_the_synthetic_scene(tmp_path_factory: pytest.TempPathF
     scene; the synthetic head's ellipsoid reaches below the photograph's chin, which a jaw cut
     calls neck, so the head and torso figures sit below the classical parser's here."""
     pytest.importorskip("mediapipe", reason="opt-in backend; install: see adnerf.preprocess.mediapipe_parser.MEDIAPIPE_INSTALL")
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.preprocess.check import parsing_iou
     from adnerf.synth import SynthConfig, synthesize
 

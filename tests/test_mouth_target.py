@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from adnerf.model import train as train_module
-from adnerf.model.data import DatasetError, load_dataset
+from adnerf.formats.dataset import DatasetError, load_dataset
 from adnerf.model.mouth_target import MouthProbe, mouth_targets, opening_signal
 from adnerf.model.run_folder import RunError, stored_config
 from adnerf.model.train import TrainConfig, Trainer, train

@@ -17,7 +17,7 @@ from adnerf.fields import (
     paper_config,
 )
 from adnerf.model.conditions import FrameCondition
-from adnerf.model.data import SceneMeta, load_dataset
+from adnerf.formats.dataset import SceneMeta, load_dataset
 from adnerf.model.distributed import Ranks
 from adnerf.model.talking_head import TalkingHead, model_config
 from adnerf.model.train import TrainConfig, Trainer, _optimise

@@ -14,7 +14,7 @@ import pytest
 
 from adnerf.cli import main
 from adnerf.io import MediaError, read_video
-from adnerf.model.data import load_dataset
+from adnerf.formats.dataset import load_dataset
 from adnerf.preprocess.frame_grid import nominal_rate, regular_grid
 from adnerf.synth import SynthConfig, synthesize
 

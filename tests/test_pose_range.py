@@ -18,7 +18,7 @@ from adnerf.model import render_clip  # the render loop: what the spies replace
 from adnerf.commands.pose_edits import angle_tracks, edit_poses, parse_angle, sway
 from adnerf.commands.render_video import RenderError, render_audio_video, render_frames
 from adnerf.io import AudioTrack, write_video
-from adnerf.model.data import load_dataset
+from adnerf.formats.dataset import load_dataset
 from adnerf.model.pose_range import PoseRange
 from adnerf.model.run_folder import load_run, taught_pose_range
 from adnerf.model.train import TrainConfig, train

@@ -15,7 +15,7 @@ import torch
 
 from adnerf.cli import main
 from adnerf.io import AudioTrack, MediaError, write_video
-from adnerf.model.data import LABEL_HEAD, LABEL_TORSO, load_dataset
+from adnerf.formats.dataset import LABEL_HEAD, LABEL_TORSO, load_dataset
 from adnerf.pose import rotation_angle
 from adnerf.preprocess import PreprocessConfig, PreprocessError, preprocess_video
 from adnerf.preprocess.headpose import align_poses, estimate_head_poses, mean_rotation
@@ -208,7 +208,7 @@ def test_long_clips_are_split_into_overlapping_segments() -> None:
 def test_segmented_pose_matches_the_truth(scene: Path, tmp_path: Path) -> None:
     """The 75-frame clip in three segments of 40 frames: joined, the poses still match the truth
     as loosely as the one-segment solve does at this size."""
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.preprocess.check import align_poses
 
     report = preprocess_video(scene / "video.mp4", tmp_path / "seg", PreprocessConfig(focal=1.33 * 96, pose_segment=40, pose_overlap=10))
@@ -614,7 +614,7 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 0, lms: bool = False) -> Path:
     """Write the synthetic scene as the original AD-NeRF preprocessing would leave it (with
     ``lms``: landmark files whose lip points sit on the true mouth point's image)."""
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.preprocess.adnerf_import import ours_pose_to_adnerf
 
     ds = load_dataset(scene, truth=True)
@@ -643,14 +643,14 @@ def _adnerf_folder(scene: Path, root: Path, units: float = 0.1, first_id: int = 
     for name, idx in (("train", meta.train), ("val", meta.test)):
         doc = {"focal_len": fx, "cx": cx - 0.5, "cy": cy - 0.5, "frames": [{"img_id": k + first_id, "aud_id": k + first_id, "transform_matrix": M[k].tolist(), "face_rect": [0, 0, 10, 10]} for k in idx]}
         (root / f"transforms_{name}.json").write_text(json.dumps(doc))
-    from adnerf.model.data import write_wav
+    from adnerf.formats.dataset import write_wav
 
     write_wav(root / "aud.wav", ds.audio)
     return root
 
 
 def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.preprocess.headpose import project_points
 
     src = _adnerf_folder(scene, tmp_path / "obama", lms=True)
@@ -686,7 +686,7 @@ def test_import_adnerf_converts_poses_parsing_and_features(scene: Path, tmp_path
 
 
 def test_import_adnerf_trims_audio_to_the_first_frame_and_reports_bad_folders(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.preprocess.adnerf_import import import_adnerf
 
     src = _adnerf_folder(scene, tmp_path / "late", first_id=5)
@@ -800,7 +800,7 @@ def test_tracks_are_the_same_on_one_thread_and_on_several(scene: Path) -> None:
     the re-observation measures each frame in its own thread: neither may change a track."""
     import torch
 
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.preprocess.tracking import TrackConfig, extend_tracks, track_points
 
     ds = load_dataset(scene)
@@ -830,7 +830,7 @@ def test_the_pose_tracked_at_a_working_size_keeps_the_frames_pixels(scene: Path)
     import cv2
     from dataclasses import replace
 
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.preprocess.pipeline import PreprocessConfig, _pose_segment
 
     ds = load_dataset(scene)

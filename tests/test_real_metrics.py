@@ -239,7 +239,7 @@ def test_landmark_evaluation_of_true_and_delayed_frames(clip: Path, tmp_path: Pa
     frames two frames late (early) give a positive (negative) offset. The cartoon's jaw moves
     smoothly, so over 50 frames the correlation's peak is broad: within a frame of the delay."""
     from adnerf.evaluation.evaluate import landmark_evaluation
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.preprocess import PreprocessConfig, preprocess_video
 
     preprocess_video(clip, tmp_path / "data", PreprocessConfig(focal=1.33 * 96))

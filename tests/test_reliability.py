@@ -21,10 +21,10 @@ import torch
 
 from adnerf.cli import main
 from adnerf.io import AudioTrack
-from adnerf.model.data import DatasetError, check_poses, load_dataset, write_wav
+from adnerf.formats.dataset import DatasetError, check_poses, load_dataset, write_wav
 from adnerf.model.layers import RadianceLayer
 from adnerf.model.train import TrainConfig, train
-from adnerf.outputs import (
+from adnerf.formats.outputs import (
     OutputError,
     check_file_output,
     check_folder_output,

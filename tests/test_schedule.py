@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from adnerf.model import train as train_module
-from adnerf.model.data import LABEL_HEAD, load_dataset
+from adnerf.formats.dataset import LABEL_HEAD, load_dataset
 from adnerf.model.layers import RadianceLayer
 from adnerf.model.talking_head import TalkingHead, model_config
 from adnerf.model.train import TrainConfig, Trainer, train

@@ -109,7 +109,7 @@ def test_vowel_opens_the_mouth_in_the_frame_where_it_is_spoken(fps: float) -> No
 def test_synthetic_scene_jaw_is_the_viseme_track(tmp_path) -> None:
     from adnerf.evaluation.evaluate import mouth_boxes, mouth_darkness
     from adnerf.evaluation.landmark_metrics import pearson
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.synth import SynthConfig, espeak_speech, synthesize
 
     cfg = SynthConfig(seconds=4.0, size=64, seed=3, speaker="en+f3", words_per_minute=170)
@@ -126,7 +126,7 @@ def test_synthetic_scene_jaw_is_the_viseme_track(tmp_path) -> None:
 
 
 def test_formant_scene_keeps_the_loudness_jaw(tmp_path) -> None:
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.synth import SynthConfig, mouth_opening, synthesize
 
     ds = load_dataset(synthesize(tmp_path / "f", SynthConfig(seconds=2.0, size=32, voice="formant")))
@@ -144,7 +144,7 @@ def test_formant_scene_keeps_the_loudness_jaw(tmp_path) -> None:
 
 def test_jaw_reader_reads_the_opening_off_exact_renders(tmp_path) -> None:
     from adnerf.bench.voices import JawReader
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.synth import (
         HeadModel,
         SynthConfig,

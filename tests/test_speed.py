@@ -22,7 +22,7 @@ from adnerf.bench.fields import (
 from adnerf.cli import main
 from adnerf.encodings import TriPlaneEncoding
 from adnerf.model.conditions import FrameCondition
-from adnerf.model.data import load_dataset
+from adnerf.formats.dataset import load_dataset
 from adnerf.model.talking_head import (
     TalkingHead,
     migrate_state_dict,

@@ -22,7 +22,7 @@ from adnerf.commands.render_video import (
 )
 from adnerf.evaluation.evaluate import evaluate_run, mouth_boxes, mouth_darkness
 from adnerf.io import AudioTrack, read_audio, read_video
-from adnerf.model.data import VERSION, DatasetError, load_dataset, write_wav
+from adnerf.formats.dataset import VERSION, DatasetError, load_dataset, write_wav
 from adnerf.model.train import RunError, TrainConfig, load_run, train
 from adnerf.synth import SynthConfig, synthesize
 
@@ -226,7 +226,7 @@ def test_stage_two_trains_the_frame_the_renderer_draws(tiny: Path, tiny_run: Pat
     # Stage 2 composites the torso it trains with the frozen head rendered at its own rays; in
     # either order of the layers that is the frame render_frame draws at the drawn pixels.
     from adnerf.compositor import Layer, over
-    from adnerf.model.data import LABEL_HEAD, LABEL_TORSO
+    from adnerf.formats.dataset import LABEL_HEAD, LABEL_TORSO
     from adnerf.model.talking_head import render_frame, render_layers, render_on_plate
     from adnerf.model.train import Trainer, behind_chin
 

@@ -112,7 +112,7 @@ def step_render(args: argparse.Namespace) -> dict:
     import torch
 
     from adnerf.cameras import Camera, intrinsics_matrix
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.model.talking_head import render_frame
     from adnerf.model.train import load_run
 
@@ -154,7 +154,7 @@ def step_steps(args: argparse.Namespace) -> dict:
     import torch
 
     from adnerf.model.blinks import blinks_in
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.model.talking_head import model_config
     from adnerf.model.train import TrainConfig, Trainer
 
@@ -214,7 +214,7 @@ def _real_run(args: argparse.Namespace, data: str, index: int) -> dict:
     import torch
 
     from adnerf.evaluation.evaluate import evaluate_run
-    from adnerf.model.data import load_dataset
+    from adnerf.formats.dataset import load_dataset
     from adnerf.model.train import TrainConfig, load_run, train
 
     head, torso = args.real_iters

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from adnerf.audio import AudioNet
-from adnerf.model.data import load_dataset
+from adnerf.formats.dataset import load_dataset
 
 
 def main() -> None:

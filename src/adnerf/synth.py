@@ -44,15 +44,16 @@ from .audio.visemes import jaw_track
 from .io import AudioTrack, write_video
 from .lock import writes_folder
 from .model.blinks import blink_track
-from .model.data import (
+from .formats.dataset import (
     LABEL_HEAD,
     LABEL_TORSO,
+    DatasetFolder,
     SceneMeta,
     Truth,
     save_dataset,
     tail_split,
 )
-from .outputs import check_folder_output
+from .formats.outputs import check_folder_output
 
 __all__ = ["SynthConfig", "Speech", "HeadModel", "TorsoModel", "background_plate", "blink_track", "eye_centres", "espeak_speech", "jaw_opening", "render_frame", "speech_audio", "mouth_opening", "pose_track", "synthesize"]
 
@@ -545,20 +546,20 @@ def _to_u8(x: np.ndarray) -> np.ndarray:
 
 @writes_folder("out_dir", "dataset")  # one writer per dataset folder
 def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, progress: Callable[[str, int, int], None] | None = None, overwrite: bool = False) -> Path:
-    """Build a synthetic talking-head dataset (see :mod:`adnerf.model.data` for the layout).
+    """Build a synthetic talking-head dataset (see :mod:`adnerf.formats.dataset` for the layout).
 
     Args:
         out_dir: Dataset folder to create.
         config: Scene parameters.
         progress: Called as ``progress(step, done, total)``.
-        overwrite: Replace an existing adnerf dataset folder (see :mod:`adnerf.outputs`).
+        overwrite: Replace an existing adnerf dataset folder (see :mod:`adnerf.formats.outputs`).
 
     Returns:
         The dataset folder.
 
     Raises:
         ValueError: Impossible settings.
-        adnerf.outputs.OutputError: ``out_dir`` must not be written; raised before any work.
+        adnerf.formats.outputs.OutputError: ``out_dir`` must not be written; raised before any work.
     """
     config.validate()
     check_folder_output(out_dir, "dataset", overwrite=overwrite)
@@ -603,8 +604,8 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
         source=f"adnerf synth: seconds={config.seconds} size={size} fps={config.fps} seed={config.seed} voice={voice}" + (f" speaker={config.speaker} wpm={config.words_per_minute}" if voice == "espeak" else "") + f" mouth={mouth}" + ("" if config.blinks else " blinks=off"),
     )
 
-    def add_video(folder: Path) -> None:
-        write_video(folder / "video.mp4", frames, config.fps, audio)
+    def add_video(folder: DatasetFolder) -> None:
+        write_video(folder.video, frames, config.fps, audio)
 
     return save_dataset(
         out_dir,

@@ -33,7 +33,7 @@ from ..allocator import tune_allocator
 from ..memory import peak_rss_bytes
 from ..metrics import psnr_from_mse
 from ..model.blinks import blinks_in
-from ..model.data import SceneMeta, load_dataset
+from ..formats.dataset import SceneMeta, load_dataset
 from ..model.talking_head import ModelConfig, model_config, render_frame
 from ..model.train import TrainConfig, Trainer
 from ..synth import SynthConfig, synthesize

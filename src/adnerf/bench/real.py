@@ -41,6 +41,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from ..formats.dataset import DatasetFolder
+from ..formats.run_folder import RunFolder
 from ..memory import peak_rss_bytes
 
 __all__ = ["bench_real", "drive_with_speech", "plot_mouth_opening", "resized_video"]
@@ -83,9 +85,7 @@ def _probe_seconds_per_iteration(dataset: Path, folder: Path, device: str, seed:
     cfg = TrainConfig(head_iters=10 * steps, checkpoint_every=steps, log_every=steps, seed=seed)
     try:
         train(dataset, probe, config=cfg, device=device, progress=False, max_steps=steps)
-        import torch
-
-        elapsed = torch.load(probe / "checkpoint.pt", map_location="cpu", weights_only=False)["elapsed"]["head"]
+        elapsed = RunFolder(probe).elapsed()["head"]
     finally:
         shutil.rmtree(probe, ignore_errors=True)
     return elapsed / steps
@@ -146,7 +146,7 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
     from ..evaluation.landmark_metrics import mouth_opening
     from ..evaluation.syncnet import SYNCNET_FPS, face_crops, sync_scores
     from ..io import AudioTrack, read_audio, write_video
-    from ..model.data import LABEL_HEAD
+    from ..formats.dataset import LABEL_HEAD
     from ..preprocess.landmarks import DlibFaceDetector, track_faces
     from .voices import mouth_follow
 
@@ -225,7 +225,7 @@ def bench_real(
     from ..evaluation.lip_signal import dataset_lip_signal
     from ..evaluation.lpips import lpips_if_available
     from ..evaluation.syncnet import load_syncnet
-    from ..model.data import frame_bytes, load_dataset
+    from ..formats.dataset import frame_bytes, load_dataset
     from ..model.train import TrainConfig, load_run, train
     from ..preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
@@ -247,9 +247,9 @@ def bench_real(
     pcfg = PreprocessConfig(cut=cut, clothes=clothes, features=features, test_fraction=test_fraction, focal=focal)
     run_dir = folder / (f"run_{iterations[0]}+{iterations[1]}it_seed{seed}" if iterations else f"run_{minutes:g}min_seed{seed}")
     t0 = time.perf_counter()
-    report_path = data / "preprocess_report.json"
+    report_path = DatasetFolder(data).report
     if not (report_path.exists() and {**asdict(PreprocessConfig()), **json.loads(report_path.read_text())["config"]} == asdict(pcfg)):  # settings added since take their defaults
-        if (run_dir / "run.json").exists():  # it would go on training on a dataset it was not started on
+        if RunFolder(run_dir).is_run():  # it would go on training on a dataset it was not started on
             raise ValueError(f"{run_dir} was trained on the dataset of other preprocessing settings; remove it (or choose another --work) to train afresh")
         log(f"preprocessing {clip} into {data}")
         with step_bars() as bars:
@@ -257,7 +257,7 @@ def bench_real(
     seconds["preprocess"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    if (run_dir / "run.json").exists():
+    if RunFolder(run_dir).is_run():
         log(f"continuing the run in {run_dir}")
         train(data, run_dir, device=device, resume=True, progress=progress)
     else:
@@ -295,7 +295,7 @@ def bench_real(
         t0 = time.perf_counter()
         every, test = np.arange(ds.meta.n_frames), list(ds.meta.test)
         activity = voiced_loudness(ds.audio.samples, ds.audio.sample_rate, every / ds.meta.fps - ds.audio.start)
-        landmarks = data / "landmarks.npy"  # preprocessing's, every frame: the longest reference
+        landmarks = DatasetFolder(data).landmarks  # preprocessing's, every frame: the longest reference
         if landmarks.exists():
             whole = {"audio": "the clip's own audio, every frame", "seconds": round(len(every) / ds.meta.fps, 2), "frames": len(every)}
             driven.append({**whole, "lips": "true frames (preprocessing's landmarks)", **mouth_follow(mouth_opening(np.load(landmarks)), activity)})

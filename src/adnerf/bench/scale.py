@@ -143,7 +143,8 @@ def bench_scale(
         ``{"video", "size", "steps", "device", "rows": [...], "growth": {...}}``: a row per length
         (see the module docstring) and the longest clip's costs per frame over the shortest's.
     """
-    from ..model.data import frame_bytes, read_meta
+    from ..formats.dataset import DatasetFolder, frame_bytes, read_meta
+    from ..formats.run_folder import RunFolder
     from .real import resized_video
 
     lengths = sorted({float(s) for s in seconds})
@@ -163,13 +164,13 @@ def bench_scale(
         log(f"{length:g} s: making the clip")
         clip, info = looped_clip(source, length, here / f"clip_{length:g}s.mp4")
         data, measured = here / "data", here / "preprocess_cost.json"
-        if not (measured.exists() and (data / "meta.json").exists()):
+        if not (measured.exists() and DatasetFolder(data).is_dataset()):
             log(f"{length:g} s: preprocessing {info['frames']} frames")
             shutil.rmtree(data, ignore_errors=True)
             wall, peak = _child(["preprocess", str(clip), "-o", str(data), *preprocess_args], here / "preprocess.log")
             measured.write_text(json.dumps({"wall_s": wall, "peak_rss_gib": peak}))
         cost = json.loads(measured.read_text())
-        report = json.loads((data / "preprocess_report.json").read_text())
+        report = json.loads(DatasetFolder(data).report.read_text())
         frames = int(report["frames"])
         timings = {k: float(v) for k, v in report["timings_s"].items()}
         run = here / "run"
@@ -178,9 +179,7 @@ def bench_scale(
         config = here / "train_config.json"
         config.write_text(json.dumps({"head_iters": steps, "torso_iters": max(1, steps // 2), "checkpoint_every": 10 * steps, "log_every": steps}))
         _, train_peak = _child(["train", str(data), "-o", str(run), "--config", str(config), "--device", device], here / "train.log")
-        import torch
-
-        elapsed = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)["elapsed"]
+        elapsed = RunFolder(run).elapsed()
         meta = read_meta(data)
         rows.append(
             {

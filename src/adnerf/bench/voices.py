@@ -79,11 +79,11 @@ def mouth_follow(rendered: np.ndarray, truth: np.ndarray, max_shift: int = 5) ->
 
 
 def _scene(folder: Path, kind: str, seconds: float, size: int, seed: int, log: Callable[[str], None]) -> Path:
-    from ..model.data import read_meta
+    from ..formats.dataset import DatasetFolder, read_meta
     from ..synth import SynthConfig, synthesize
 
     config = SynthConfig(seconds=seconds, size=size, seed=seed, voice="espeak", speaker=TRAINING_VOICE.speaker, words_per_minute=TRAINING_VOICE.words_per_minute, mouth="visemes", features=kind, test_fraction=0.1)
-    if (folder / "meta.json").exists():
+    if DatasetFolder(folder).is_dataset():
         meta = read_meta(folder)
         same = meta.n_frames == config.n_frames and meta.width == size and meta.feature_kind == kind
         if same and f"seed={seed} " in meta.source and f"speaker={TRAINING_VOICE.speaker} wpm={TRAINING_VOICE.words_per_minute} mouth=visemes" in meta.source:
@@ -132,7 +132,8 @@ def bench_voices(
     from ..commands.demo import DEMO_TRAIN
     from ..commands.render_video import audio_frames, pingpong, render_frames
     from ..io import AudioTrack
-    from ..model.data import load_dataset
+    from ..formats.dataset import load_dataset
+    from ..formats.run_folder import RunFolder
     from ..model.train import load_run, train
     from ..synth import SAMPLE_RATE, HeadModel, TorsoModel, espeak_speech
 
@@ -151,7 +152,7 @@ def bench_voices(
     for kind in kinds:
         data = _scene(folder / f"scene_{kind}", kind, seconds, size, seed, log)
         run_dir = folder / f"run_{kind}_{tcfg.head_iters}+{tcfg.torso_iters}_seed{seed}"
-        if (run_dir / "run.json").exists():
+        if RunFolder(run_dir).is_run():
             train(data, run_dir, device=device, resume=True, progress=progress)
         else:
             log(f"training on {kind} features into {run_dir}")

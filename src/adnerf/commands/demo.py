@@ -10,6 +10,7 @@ another scene than the demo's is refused (:func:`check_reused_scene`).
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from dataclasses import asdict
@@ -21,12 +22,15 @@ import numpy as np
 from ..evaluation.evaluate import evaluate_run
 from ..evaluation.sheets import contact_sheet  # re-exported: the demo's sheet
 from ..io import write_video
-from ..model.data import DatasetError, SceneMeta, load_dataset, tail_split
+from ..formats.dataset import DatasetError, DatasetFolder, SceneMeta, load_dataset, tail_split
+from ..formats.outputs import OutputError
+from ..formats.run_folder import RunFolder
 from ..model.train import TrainConfig, load_run, train
 from ..synth import SynthConfig, synthesize
 from ..model.render_clip import render_frames
+from .options import add_device, checked_device, number
 
-__all__ = ["DEMO_SYNTH", "DEMO_TRAIN", "check_reused_scene", "contact_sheet", "run_demo"]
+__all__ = ["DEMO_SYNTH", "DEMO_TRAIN", "check_reused_scene", "contact_sheet", "register", "run", "run_demo"]
 
 # 30 s rather than the synthesiser's 18 s: the audio encoder learns the jaw from the training
 # frames' speech alone, and more of it generalises better (docs/decisions.md). The last 10%
@@ -48,7 +52,7 @@ def new_background(height: int, width: int) -> np.ndarray:
 
 
 def check_reused_scene(meta: SceneMeta, config: SynthConfig, where: Path, has_eye: bool = True) -> None:
-    """Raise :class:`~adnerf.model.data.DatasetError` if the scene in ``where`` is not the one ``config``
+    """Raise :class:`~adnerf.formats.dataset.DatasetError` if the scene in ``where`` is not the one ``config``
     makes (length, size, frame rate, held-out frames, what drives the jaw, whether it blinks:
     ``has_eye``, the dataset has ``eye.npy``), e.g. one left by an older demo: its figures would be
     reported under this demo's settings."""
@@ -138,14 +142,14 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     data_dir, run_dir = out / "data", out / "run"
     t0 = time.perf_counter()
-    if not (data_dir / "meta.json").exists():
+    if not DatasetFolder(data_dir).is_dataset():
         log(f"synthesising the scene into {data_dir}")
         synthesize(data_dir, synth_config)
     synth_seconds = time.perf_counter() - t0
     ds = load_dataset(data_dir)
     check_reused_scene(ds.meta, synth_config, data_dir, has_eye=ds.eye is not None)
     t1 = time.perf_counter()
-    train(data_dir, run_dir, config=train_config, device=device, resume=(run_dir / "run.json").exists(), progress=progress)
+    train(data_dir, run_dir, config=train_config, device=device, resume=RunFolder(run_dir).is_run(), progress=progress)
     train_seconds = time.perf_counter() - t1
     run = load_run(run_dir, device)
     log("evaluating the held-out frames")
@@ -187,3 +191,22 @@ def run_demo(
     (out / "metrics.json").write_text(json.dumps(result, indent=1))
     log(f"wrote {out / 'demo.mp4'}, {out / 'contact_sheet.png'} and {out / 'metrics.json'}")
     return result
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """``adnerf demo``."""
+    p = sub.add_parser("demo", help="synthesise a talking head, train, render held-out audio three ways, evaluate")
+    p.add_argument("-o", "--output", default="adnerf_demo", help="output folder (default adnerf_demo); re-running resumes")
+    add_device(p)
+    p.add_argument("--scale", type=number(int, 1, 64), default=1, help="train the demo's schedule in K times fewer steps of K times the rays from K times the frames, learning rates times sqrt(K) (as train --scale; for GPUs: --scale 4)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: is a file, not a folder; give a folder for the demo")
+    metrics = run_demo(args.output, device=checked_device(args.device), train_config=DEMO_TRAIN.scaled(args.scale))
+    keys = ("psnr_test", "ssim_test", "psnr_mouth_test", "mouth_open_corr", "train_seconds", "render_fps", "total_seconds")
+    print(json.dumps({k: metrics[k] for k in keys}, indent=1))
+    return 0

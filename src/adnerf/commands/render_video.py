@@ -30,7 +30,9 @@ from ..model.blinks import count_blinks, eye_track
 from ..model.render_clip import RenderedClip, RenderError, checked_poses, pingpong_index, render_frames  # re-exported: the command's refusals and its loop
 from ..model.run_folder import Run
 from ..lock import writes_folder
-from ..outputs import check_file_output, check_frames_folder
+from ..formats.dataset import DatasetFolder
+from ..formats.outputs import check_file_output, check_frames_folder
+from ..formats.run_folder import RunFolder
 from ..preprocess.framing import Framing
 from .paste_back import PasteBackError, paste_back_frames, source_frames_of_dataset, write_pasted
 from .pose_edits import AngleTrack, angle_tracks, check_pose_range, edit_poses, parse_angle
@@ -117,7 +119,7 @@ def plan_paste_back(meta: dict, paste_back: bool | None, *, source: str | Path |
         return None
     if framing is None or not framing.cropped:
         if asked:
-            raise RenderError("this run's dataset was not cropped from a larger video (no framing in its meta.json): its renders already have the video's size")
+            raise RenderError("this run's dataset was not cropped from a larger video (its metadata holds no framing): its renders already have the video's size")
         return None
     W, H = framing.source_size
     still = None
@@ -174,7 +176,7 @@ def frame_names(n: int) -> list[str]:
 
 
 def check_render_outputs(out: str | Path, frames_dir: str | Path | None, *, inputs: list, overwrite: bool = False) -> None:
-    """Refuse outputs a render must not write, before any rendering (see :mod:`adnerf.outputs`):
+    """Refuse outputs a render must not write, before any rendering (see :mod:`adnerf.formats.outputs`):
     an ``out`` that is an input or an existing file without ``overwrite``, and a ``frames_dir``
     inside a dataset or run or already holding frame images (``NNNNNN.png``) without ``overwrite``.
     """
@@ -255,59 +257,24 @@ def render_audio_video(
     check_render_outputs(out, frames_dir, inputs=[audio_path, poses_file, features, background, blink_file, source, still_frame, *track_files], overwrite=overwrite)
     plan = plan_paste_back(run.meta, paste_back, source=source, still_frame=still_frame, background=background)
     if blink_file is not None and not run.model.reads_eye:
-        raise RenderError(f"--blink {blink}: this run's head has no eye condition (it was trained on a dataset without eye.npy), so it cannot blink on command")
+        raise RenderError(f"--blink {blink}: this run's head has no eye condition (it was trained on a dataset without eye openness), so it cannot blink on command")
     try:
         audio = read_audio(audio_path, sample_rate=MODEL_RATE)
     except MediaError as exc:
         raise RenderError(str(exc)) from exc
     meta = run.meta
-    if features is not None:
-        try:
-            windows = load_npy_windows(features)
-        except MediaError as exc:
-            raise RenderError(str(exc)) from exc
-        if windows.shape[2] != meta["feature_dim"] or not np.isfinite(windows).all():
-            raise RenderError(f"{features}: this run needs finite windows of shape (M, 16, {meta['feature_dim']}); got {windows.shape}")
-        wanted = max(1, int(math.floor(audio.duration * meta["fps"])))
-        if len(windows) < wanted:
-            warnings.warn(
-                f"{features}: {len(windows)} feature windows but the audio gives {wanted} frames at {meta['fps']:g} fps; "
-                f"the video stops after {len(windows) / meta['fps']:.2f} s of the {audio.duration:.2f} s of audio"
-            )
-            audio = AudioTrack(audio.samples[: int(round(len(windows) / meta["fps"] * audio.sample_rate))], audio.sample_rate, audio.start)
-        windows = windows[:wanted]
-    elif meta["feature_kind"] == "none":
-        raise RenderError("this run was trained on a silent dataset (--features none); it has no audio pathway to drive")
-    elif meta["feature_kind"] not in FEATURE_KINDS:
-        raise RenderError(
-            f"this run was trained on {meta['feature_kind']!r} features, which adnerf cannot compute; "
-            "give the windows of the new audio with --features FILE.npy (for AD-NeRF's DeepSpeech: the aud.npy its extractor writes)"
-        )
-    else:
-        windows = audio_frames(audio, meta["fps"], meta["feature_kind"], str(audio_path))
+    windows, audio = _feature_windows(meta, audio, audio_path, features)
     n = len(windows)
-    if poses_file is not None:
-        poses = load_poses(poses_file, n)
-    else:
-        source = Path(from_dataset) if from_dataset is not None else run.dataset
-        if not (source / "poses.npy").exists():
-            hint = "" if from_dataset is not None else " (the run's training dataset has moved or gone: take poses from a dataset with --from DATASET, or give them with --poses FILE.npy)"
-            raise RenderError(f"{source}: no poses.npy to take poses from{hint}")
-        poses = pingpong(checked_poses(np.load(source / "poses.npy"), str(source / "poses.npy")), n)
+    poses = load_poses(poses_file, n) if poses_file is not None else _dataset_poses(run, from_dataset, n)
     if plan is not None and plan.plate is not None:
         plate = plan.plate
-    elif background is not None:
-        plate = load_background(background, meta["height"], meta["width"])
     else:
-        plate = load_background(run.root / "background.png", meta["height"], meta["width"])
+        plate = load_background(background if background is not None else RunFolder(run.root).background, meta["height"], meta["width"])
     try:
         eye = eye_track(blink, n, meta["fps"]) if run.model.reads_eye else None
-    except ValueError as exc:
-        raise RenderError(str(exc)) from exc
-    try:
         angles = angle_tracks(tracks, poses, meta["fps"], run.pose_range)
         pose_warning = check_pose_range(run.pose_range, edit_poses(poses, angles), strict=strict_pose)
-    except ValueError as exc:  # a bad track file, a sway without a range, PoseRangeError
+    except ValueError as exc:  # a bad blink or track file, a sway without a range, PoseRangeError
         raise RenderError(str(exc)) from exc
     source_index = None
     if plan is not None and plan.still is None:
@@ -323,10 +290,51 @@ def render_audio_video(
     else:
         write_pasted(out, paste_back_frames(clip.frames, plan.framing, video=plan.video, source_index=source_index, still=plan.still), meta["fps"], track)
     if frames_dir is not None:
-        d = Path(frames_dir)
-        d.mkdir(parents=True, exist_ok=True)
-        for name, f in zip(frame_names(n), clip.frames):
-            if not cv2.imwrite(str(d / name), cv2.cvtColor(f, cv2.COLOR_RGB2BGR)):
-                raise RenderError(f"{d / name}: could not write the frame")
+        _write_frames(Path(frames_dir), clip.frames)
     size = list(plan.framing.source_size) if plan is not None else [int(meta["width"]), int(meta["height"])]
     return {"output": str(out), "frames": n, "size": size, "pasted_back": plan is not None, "audio_seconds": audio.duration, "render_seconds": clip.seconds, "render_fps": n / max(clip.seconds, 1e-9), "blinks": None if eye is None else count_blinks(eye), "pose_warning": pose_warning}
+
+
+def _feature_windows(meta: dict, audio: AudioTrack, audio_path: str | Path, features: str | Path | None) -> tuple[np.ndarray, AudioTrack]:
+    """The audio's feature windows ``(n, 16, D)`` (computed with the run's extractor, or read from
+    ``features``) and the audio they cover (cut short when ``features`` holds fewer windows)."""
+    if features is None:
+        if meta["feature_kind"] == "none":
+            raise RenderError("this run was trained on a silent dataset (--features none); it has no audio pathway to drive")
+        if meta["feature_kind"] not in FEATURE_KINDS:
+            raise RenderError(
+                f"this run was trained on {meta['feature_kind']!r} features, which adnerf cannot compute; "
+                "give the windows of the new audio with --features FILE.npy (for AD-NeRF's DeepSpeech: the aud.npy its extractor writes)"
+            )
+        return audio_frames(audio, meta["fps"], meta["feature_kind"], str(audio_path)), audio
+    try:
+        windows = load_npy_windows(features)
+    except MediaError as exc:
+        raise RenderError(str(exc)) from exc
+    if windows.shape[2] != meta["feature_dim"] or not np.isfinite(windows).all():
+        raise RenderError(f"{features}: this run needs finite windows of shape (M, 16, {meta['feature_dim']}); got {windows.shape}")
+    wanted = max(1, int(math.floor(audio.duration * meta["fps"])))
+    if len(windows) < wanted:
+        warnings.warn(
+            f"{features}: {len(windows)} feature windows but the audio gives {wanted} frames at {meta['fps']:g} fps; "
+            f"the video stops after {len(windows) / meta['fps']:.2f} s of the {audio.duration:.2f} s of audio"
+        )
+        audio = AudioTrack(audio.samples[: int(round(len(windows) / meta["fps"] * audio.sample_rate))], audio.sample_rate, audio.start)
+    return windows[:wanted], audio
+
+
+def _dataset_poses(run: Run, from_dataset: str | Path | None, n: int) -> np.ndarray:
+    """``n`` poses of a dataset's track played back and forth: ``from_dataset``'s, or the run's own dataset's."""
+    track = DatasetFolder(Path(from_dataset) if from_dataset is not None else run.dataset).poses
+    if not track.exists():
+        hint = "" if from_dataset is not None else " (the run's training dataset has moved or gone: take poses from a dataset with --from DATASET, or give them with --poses FILE.npy)"
+        raise RenderError(f"{track.parent}: no {track.name} to take poses from{hint}")
+    return pingpong(checked_poses(np.load(track), str(track)), n)
+
+
+def _write_frames(folder: Path, frames: np.ndarray) -> None:
+    """``--frames``: the rendered squares as PNGs ``000000.png, ...``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, f in zip(frame_names(len(frames)), frames):
+        if not cv2.imwrite(str(folder / name), cv2.cvtColor(f, cv2.COLOR_RGB2BGR)):
+            raise RenderError(f"{folder / name}: could not write the frame")

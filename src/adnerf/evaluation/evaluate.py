@@ -28,7 +28,7 @@ from kornia.metrics import ssim
 
 from ..model.render_clip import RenderedClip, render_frames
 from ..metrics import psnr
-from ..model.data import (
+from ..formats.dataset import (
     LABEL_HEAD,
     MOUTH_CROP,
     DatasetError,
@@ -214,7 +214,7 @@ _SAME_SCENE = ("width", "height", "intrinsics", "fps", "feature_kind", "feature_
 
 
 def check_matches_run(run: Run, ds: TalkingHeadDataset) -> None:
-    """Raise :class:`~adnerf.model.data.DatasetError` unless ``ds`` has the camera (size, intrinsics),
+    """Raise :class:`~adnerf.formats.dataset.DatasetError` unless ``ds`` has the camera (size, intrinsics),
     frame rate and audio features the run was trained with."""
     found = {k: getattr(ds.meta, k) for k in _SAME_SCENE}
     differ = [f"{k} {run.meta[k]!r} vs {found[k]!r}" for k in _SAME_SCENE if json.loads(json.dumps(found[k])) != run.meta.get(k)]

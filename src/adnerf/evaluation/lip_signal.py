@@ -130,22 +130,23 @@ def dataset_lip_signal(root: str | Path, **kwargs: object) -> LipSignal:
     no face was found, so every frame has an opening; a non-finite one is a ``ValueError``.
 
     Raises:
-        adnerf.model.data.DatasetError: Not a dataset, or no ``landmarks.npy`` (``adnerf
+        adnerf.formats.dataset.DatasetError: Not a dataset, or no ``landmarks.npy`` (``adnerf
             preprocess`` writes it; a synthetic scene has none).
     """
     from ..audio.features import voiced_loudness
     from ..io import read_audio
-    from ..model.data import DatasetError, read_meta
+    from ..formats.dataset import DatasetError, DatasetFolder, read_meta
 
     root = Path(root)
     meta = read_meta(root)
-    if not (root / "landmarks.npy").exists():
-        raise DatasetError(f"{root}: no landmarks.npy; the lip signal needs the true frames' face landmarks (adnerf preprocess writes them)")
-    windows = np.load(root / "features.npy")
-    landmarks = np.load(root / "landmarks.npy")
+    files = DatasetFolder(root)
+    if not files.landmarks.exists():
+        raise DatasetError(f"{root}: no {files.landmarks.name}; the lip signal needs the true frames' face landmarks (adnerf preprocess writes them)")
+    windows = np.load(files.features)
+    landmarks = np.load(files.landmarks)
     if landmarks.shape != (meta.n_frames, 68, 2) or windows.shape[0] != meta.n_frames:
         raise DatasetError(f"{root}: landmarks {landmarks.shape} and features {windows.shape} do not match its {meta.n_frames} frames")
-    audio = read_audio(root / "audio.wav")
+    audio = read_audio(files.audio)
     loud = voiced_loudness(np.asarray(audio.samples, np.float64), audio.sample_rate, np.arange(meta.n_frames) / meta.fps)
     split = {"train": list(meta.train), "test": list(meta.test)} if meta.train and meta.test else {}
     return lip_signal(windows, mouth_opening(landmarks), loudness=loud, **split, **kwargs)  # type: ignore[arg-type]

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from ..cameras import Camera
-from ..model.data import LABEL_HEAD, TalkingHeadDataset
+from ..formats.dataset import LABEL_HEAD, TalkingHeadDataset
 from ..model.pose_range import torso_reads
 from ..model.run_folder import Run
 from ..model.talking_head import render_frame

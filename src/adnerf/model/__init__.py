@@ -6,7 +6,8 @@
   and conditions); :mod:`~adnerf.model.talking_head`: the audio encoders and the stack of layers
   (head, torso) over a plate.
 - :mod:`~adnerf.model.blinks`: eye-openness tracks (natural blinks, ``--blink`` choices).
-- :mod:`~adnerf.model.data`: the dataset folder a clip is preprocessed into.
+- the dataset folder a clip is preprocessed into is :mod:`adnerf.formats.dataset`'s (re-exported
+  as :mod:`adnerf.model.data`).
 - :mod:`~adnerf.model.train_config`, :mod:`~adnerf.model.train`,
   :mod:`~adnerf.model.distributed`: the schedule, the training loop (one or several processes).
 - :mod:`~adnerf.model.run_folder`: what a trained run is on disk and how it is loaded.

@@ -1,7 +1,7 @@
 """Eye blinks: natural blink tracks and the choices ``adnerf render --blink`` offers.
 
 An eye-openness track is one value per frame: 1 the eyes as open as usual, 0 closed (the scale of
-a dataset's ``eye.npy``, see :mod:`adnerf.model.data`). :func:`blink_track` makes natural blinks (one
+a dataset's ``eye.npy``, see :mod:`adnerf.formats.dataset`). :func:`blink_track` makes natural blinks (one
 every 2-6 s, 0.2 s long, as people blink while talking); the synthetic scene blinks with it and
 ``render --blink auto`` plays it.
 """

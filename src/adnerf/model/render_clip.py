@@ -18,7 +18,8 @@ import torch
 
 from ..cameras import Camera
 from ..pose import HeadPose
-from .data import DatasetError, SceneMeta, check_poses
+from ..formats.dataset import DatasetError, check_poses
+from ..formats.run_folder import scene_meta
 from .pose_range import edit_poses, torso_reads
 from .run_folder import Run
 from .talking_head import FrameRender, render_frame
@@ -31,7 +32,7 @@ class RenderError(ValueError):
 
 
 def checked_poses(poses: np.ndarray, where: str) -> np.ndarray:
-    """``poses`` after the dataset loader's rigidity checks (:func:`adnerf.model.data.check_poses`)."""
+    """``poses`` after the dataset loader's rigidity checks (:func:`adnerf.formats.dataset.check_poses`)."""
     try:
         check_poses(poses, where)
     except DatasetError as exc:
@@ -76,7 +77,7 @@ def frame_setup(run: Run, plate: np.ndarray) -> tuple[Camera, torch.Tensor]:
     if plate.shape != (meta["height"], meta["width"], 3):
         raise RenderError(f"background must be ({meta['height']}, {meta['width']}, 3); got {plate.shape}")
     dev = next(run.model.parameters()).device
-    camera = SceneMeta(**{**meta, "train": [0], "test": []}).camera(device=dev)
+    camera = scene_meta(meta).camera(device=dev)
     return camera, torch.as_tensor(plate, dtype=torch.float32, device=dev)
 
 

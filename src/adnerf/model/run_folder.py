@@ -1,13 +1,9 @@
-"""The run folder: what training writes and rendering, evaluation and resuming read.
+"""A trained run, loaded: its model built from the latest checkpoint, its schedule and pose range.
 
-A run folder holds ``run.json`` (format and version, the dataset's path and fingerprint, the model
-and training configuration, the dataset's camera and audio metadata, how it was trained:
-processes, backend, devices; the head poses the training frames covered, ``pose_range``),
-``background.png`` (the dataset's plate), ``checkpoint.pt`` (model,
-optimisers, random generator, finished steps and training seconds; written atomically),
-and ``log.jsonl`` (one JSON object per logged iteration); a ``head_renders.pt`` of earlier
-versions (a cache of stage-1 renders) is no longer read. :func:`load_run` gives a :class:`Run`; training
-(:mod:`adnerf.model.train`) is the only writer.
+The folder's files and ``run.json`` are :mod:`adnerf.formats.run_folder`'s (:class:`RunFolder`);
+this module builds and writes what needs the model: :func:`load_run` gives a :class:`Run`,
+:func:`write_run` writes ``run.json`` and the plate, and training (:mod:`adnerf.model.train`) is the
+only writer.
 """
 
 from __future__ import annotations
@@ -23,20 +19,13 @@ import torch
 
 from ..atomic import atomic_path
 from ..lock import lock_owner
-from .data import DatasetError, SceneMeta, TalkingHeadDataset, read_meta
+from ..formats.dataset import DatasetError, DatasetFolder, SceneMeta, TalkingHeadDataset, read_meta
+from ..formats.run_folder import RUN_FORMAT, RUN_VERSION, RunError, RunFolder
 from .pose_range import PoseRange
 from .talking_head import ModelConfig, TalkingHead, migrate_state_dict
 from .train_config import TrainConfig
 
 __all__ = ["RESUMABLE", "RUN_FORMAT", "RUN_VERSION", "Run", "RunError", "load_run", "resumed_config", "stored_config", "stored_pose_range", "taught_pose_range", "write_run"]
-
-RUN_FORMAT = "adnerf-run"
-RUN_VERSION = 1
-
-
-class RunError(RuntimeError):
-    """A run folder is missing, incomplete, of another version, or would be overwritten."""
-
 
 # What a resumed run may change: its length and how it is checkpointed, logged and computed.
 # Everything else (rays, rates, seed, preset, ...) would make the continuation another run.
@@ -110,18 +99,8 @@ class Run:
 
 
 def read_run_doc(root: Path) -> dict:
-    """``run.json`` of a run folder, checked for format and version."""
-    path = root / "run.json"
-    if not path.exists():
-        raise RunError(f"{root}: not an adnerf run (no run.json); train one with `adnerf train DATASET -o {root}`")
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise RunError(f"{path}: unreadable or damaged ({exc}); train a new run into another folder") from exc
-    if not isinstance(doc, dict) or doc.get("format") != RUN_FORMAT or doc.get("version") != RUN_VERSION:
-        found = (doc.get("format"), doc.get("version")) if isinstance(doc, dict) else (None, None)
-        raise RunError(f"{path}: format {found[0]!r} version {found[1]!r}; this adnerf reads {RUN_FORMAT} version {RUN_VERSION}")
-    return doc
+    """``run.json`` of a run folder, checked for format and version (:meth:`RunFolder.doc`)."""
+    return RunFolder(root).doc()
 
 
 def stored_config(root: str | Path) -> TrainConfig:
@@ -135,7 +114,7 @@ CHECKPOINT_KEYS = ("model", "opt_head", "opt_torso", "generator", "head_step", "
 def read_checkpoint(path: Path, device: str | torch.device) -> dict:
     """A checkpoint file's content; a missing, empty or damaged file is a :class:`RunError`."""
     if not path.exists():
-        raise RunError(f"{path.parent}: no checkpoint.pt yet (training has not written one); train with `adnerf train DATASET -o {path.parent}`")
+        raise RunError(f"{path.parent}: no {path.name} yet (training has not written one); train with `adnerf train DATASET -o {path.parent}`")
     try:
         ckpt = torch.load(path, map_location=device, weights_only=False)
     except Exception as exc:  # torch.load raises many types on a damaged file (EOFError, RuntimeError, UnpicklingError, ...)
@@ -157,7 +136,7 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     """
     root = Path(root)
     doc = read_run_doc(root)
-    ckpt_path = root / "checkpoint.pt"
+    ckpt_path = RunFolder(root).checkpoint
     ckpt = read_checkpoint(ckpt_path, device)
     model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
     tcfg = TrainConfig.from_stored(doc["train"])
@@ -182,10 +161,10 @@ def stored_pose_range(doc: dict) -> PoseRange | None:
         try:
             return PoseRange.from_dict(doc["pose_range"])
         except ValueError as exc:
-            raise RunError(f"run.json's pose_range is damaged ({exc}); train a new run into another folder") from exc
+            raise RunError(f"the run's pose_range is damaged ({exc}); train a new run into another folder") from exc
     dataset = Path(doc.get("dataset", ""))
     try:
-        return taught_pose_range(np.load(dataset / "poses.npy"), read_meta(dataset))
+        return taught_pose_range(np.load(DatasetFolder(dataset).poses), read_meta(dataset))
     except (OSError, ValueError, DatasetError, IndexError):
         return None
 
@@ -240,5 +219,6 @@ def write_run(root: Path, dataset: str | Path, ds: TalkingHeadDataset, mcfg: Mod
         "pose_range": taught_pose_range(ds.poses, ds.meta).to_dict(),
         **(extra or {}),
     }
-    write_json_atomic(root / "run.json", doc)
-    shutil.copyfile(Path(dataset) / "background.png", root / "background.png")
+    files = RunFolder(root)
+    write_json_atomic(files.run_json, doc)
+    shutil.copyfile(DatasetFolder(dataset).background, files.background)

@@ -23,6 +23,8 @@ import numpy as np
 import torch
 
 from ..audio.features import MODEL_RATE, StreamingWindows
+from ..formats.dataset import DatasetFolder
+from ..formats.run_folder import RunFolder
 from ..io import read_audio, read_image
 from .blinks import blink_track
 from .pose_range import edit_poses, torso_reads
@@ -75,7 +77,7 @@ class Streamer:
         if not np.isfinite(angles).all() or np.abs(angles).max() > 180:
             raise RenderError("yaw, pitch and roll must be finite degrees within -180..180")
         if poses is None:
-            track = run.dataset / "poses.npy"
+            track = DatasetFolder(run.dataset).poses
             if not track.exists():
                 raise RenderError(f"{track}: no pose track to play (the run's training dataset has moved or gone): give poses")
             poses = np.load(track)
@@ -84,7 +86,7 @@ class Streamer:
         self.angles = angles
         self.blink = blink if run.model.reads_eye else None
         if plate is None:
-            plate = read_image(run.root / "background.png", meta["height"], meta["width"])
+            plate = read_image(RunFolder(run.root).background, meta["height"], meta["width"])
         self.camera, self.plate = frame_setup(run, plate)
         self.windows = StreamingWindows(self.fps, start=start, n_mels=int(meta["feature_dim"]))
         model = run.model

@@ -48,7 +48,7 @@ from ..fields import (
 from ..pose import HeadPose
 from ..rays import RayBundle
 from .conditions import SIGNAL_WIDTHS, FrameCondition, signal_width
-from .data import SceneMeta
+from ..formats.dataset import SceneMeta
 from .layers import RadianceLayer
 from .mouth_target import MouthProbe
 

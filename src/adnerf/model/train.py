@@ -49,21 +49,23 @@ from ..compositor import Composite, Layer, over
 from ..lock import FolderLock
 from ..memory import require
 from ..metrics import psnr_from_mse
-from ..outputs import check_folder_output, ensure_writable
+from ..formats.dataset import (
+    EYE_CROP,
+    LABEL_HEAD,
+    LABEL_TORSO,
+    MOUTH_CROP,
+    DatasetFolder,
+    TalkingHeadDataset,
+    frame_bytes,
+    load_dataset,
+)
+from ..formats.outputs import check_folder_output, ensure_writable
+from ..formats.run_folder import RunFolder
 from ..pose import HeadPose
 from ..renderer import RenderOutput
 from ..rng import Shard
 from .blinks import BLINKING, blinks_in
 from .conditions import FrameCondition
-from .data import (
-    EYE_CROP,
-    LABEL_HEAD,
-    LABEL_TORSO,
-    MOUTH_CROP,
-    TalkingHeadDataset,
-    frame_bytes,
-    load_dataset,
-)
 from .distributed import Ranks, init_ranks
 from .masks import BitRows
 from .mouth_target import MouthProbe, mouth_targets, opening_signal
@@ -293,11 +295,11 @@ def mouth_plan(ds: TalkingHeadDataset, tcfg: TrainConfig) -> MouthPlan:
         RunError: The landmarks give no usable target (e.g. a mouth that never moves).
     """
     if tcfg.lip_weight <= 0 or ds.landmarks is None:
-        return MouthPlan(False, {"used": False, "why": "lip_weight is 0" if tcfg.lip_weight <= 0 else "the dataset has no landmarks.npy"})
+        return MouthPlan(False, {"used": False, "why": "lip_weight is 0" if tcfg.lip_weight <= 0 else "the dataset has no landmarks"})
     try:
         targets, valid = mouth_targets(ds.landmarks, ds.meta.train)
     except ValueError as exc:
-        raise RunError(f"{ds.root}/landmarks.npy: {exc}; train with {{\"lip_weight\": 0}} (--config) to go on without the mouth target") from exc
+        raise RunError(f"{DatasetFolder(ds.root).landmarks}: {exc}; train with {{\"lip_weight\": 0}} (--config) to go on without the mouth target") from exc
     signal = opening_signal(ds.features, targets, valid, ds.meta.train)
     known = not math.isnan(signal)
     used = (known and signal >= tcfg.lip_min_signal) or tcfg.lip_min_signal <= -1
@@ -347,7 +349,7 @@ class Trainer:
         # a GPU would wait for the work queued there at every draw.
         self.train_frames = torch.as_tensor(ds.meta.train)
         if self.model.reads_eye and ds.eye is None:
-            raise RunError(f"the run's head reads the eye openness but {ds.root} has no eye.npy")
+            raise RunError(f"the run's head reads the eye openness but {ds.root} has no {DatasetFolder(ds.root).eye.name}")
         self.eye = torch.as_tensor(ds.eye, device=device) if ds.eye is not None and self.model.reads_eye else None
         # Frames that teach the eye condition: the blinking ones (drawn more often, blink_frames).
         self.blinking = self.train_frames[torch.as_tensor(ds.eye)[self.train_frames] < BLINKING] if self.eye is not None else self.train_frames[:0]
@@ -442,12 +444,12 @@ class Trainer:
         }
         if self.mouth_probe is not None:
             state["mouth_probe"] = {"model": self.mouth_probe.state_dict(), "opt": self.opt_probe.state_dict()}
-        save_atomic(state, self.root / "checkpoint.pt")
+        save_atomic(state, RunFolder(self.root).checkpoint)
 
     def load(self, ckpt: dict) -> None:
         """Continue from checkpoint content (see :func:`read_checkpoint`); the log keeps only the
         lines of the steps the checkpoint holds, so a resumed run logs each step once."""
-        load_model_state(self.model, ckpt["model"], self.root / "checkpoint.pt", scheduled_smoothing(self.tcfg, ckpt["head_step"]))
+        load_model_state(self.model, ckpt["model"], RunFolder(self.root).checkpoint, scheduled_smoothing(self.tcfg, ckpt["head_step"]))
         self.opt_head.load_state_dict(ckpt["opt_head"])
         self.opt_torso.load_state_dict(ckpt["opt_torso"])
         self.generator.set_state(ckpt["generator"].cpu())  # loaded with map_location=device
@@ -455,7 +457,7 @@ class Trainer:
         if self.mouth_probe is not None and "mouth_probe" in ckpt:
             self.mouth_probe.load_state_dict(ckpt["mouth_probe"]["model"])
             self.opt_probe.load_state_dict(ckpt["mouth_probe"]["opt"])
-        log = self.root / "log.jsonl"
+        log = RunFolder(self.root).log
         if log.exists() and self.ranks.main:
             done = {"head": self.head_step, "torso": self.torso_step}
             rows = [line for line in log.read_text().splitlines() if line.strip()]
@@ -474,7 +476,7 @@ class Trainer:
     def log(self, row: dict) -> None:
         if not self.ranks.main:
             return
-        with open(self.root / "log.jsonl", "a") as f:
+        with open(RunFolder(self.root).log, "a") as f:
             f.write(json.dumps(row) + "\n")
 
     # ---- sampling
@@ -775,7 +777,7 @@ def train(
     """Train (or resume training) a talking head on a dataset.
 
     Args:
-        dataset: Dataset folder (see :mod:`adnerf.model.data`).
+        dataset: Dataset folder (see :mod:`adnerf.formats.dataset`).
         run_dir: Run folder to create (or to resume).
         stage: ``"head"``, ``"torso"`` or ``"all"`` (head, then torso).
         config: Schedule; on resume, ``None`` keeps the stored one, and a given one may differ
@@ -796,27 +798,27 @@ def train(
         adnerf.lock.FolderBusyError: Another live process trains ``run_dir``.
         TrainingInterrupted: SIGINT or SIGTERM arrived; the step was finished and a checkpoint
             written first.
-        adnerf.outputs.OutputError: ``run_dir`` is a file, holds other files, or is not writable.
+        adnerf.formats.outputs.OutputError: ``run_dir`` is a file, holds other files, or is not writable.
     """
     if stage not in ("head", "torso", "all"):
         raise ValueError(f"stage must be head, torso or all; got {stage!r}")
     root = Path(run_dir)
     ranks, device = init_ranks(device)
     ds = load_dataset(dataset, truth=False)
-    run_json = root / "run.json"
+    files = RunFolder(root)
     ckpt = None
     # Every check comes before the first write: a refused command leaves the folder as it was.
     if resume:
-        if not run_json.exists():
-            raise RunError(f"{root}: nothing to resume (no run.json); drop --resume to start a new run")
+        if not files.is_run():
+            raise RunError(f"{root}: nothing to resume (no {files.run_json.name}); drop --resume to start a new run")
         doc = read_run_doc(root)
         mcfg = ModelConfig.from_dict(doc["model"])
         tcfg = resumed_config(TrainConfig.from_stored(doc["train"]), config)
         check_same_dataset(doc, ds, dataset, root)
-        if (root / "checkpoint.pt").exists():
-            ckpt = read_checkpoint(root / "checkpoint.pt", device)
+        if files.checkpoint.exists():
+            ckpt = read_checkpoint(files.checkpoint, device)
     else:
-        if run_json.exists() or (root / "checkpoint.pt").exists():
+        if files.is_run() or files.checkpoint.exists():
             raise RunError(f"{root}: a run already exists there; pass --resume to continue it or choose another folder")
         check_folder_output(root, "run", inputs=[dataset], flag=None)
         tcfg = config or TrainConfig()
@@ -854,7 +856,7 @@ def train(
                     budget -= trainer.head_step - before
             if stage == "torso" or (stage == "all" and tcfg.torso_iters > 0 and (budget is None or budget > 0)):
                 trainer.torso_stage(budget)
-        if not (root / "checkpoint.pt").exists():
+        if not files.checkpoint.exists():
             trainer.save()
         ranks.barrier()
     return root

@@ -55,12 +55,14 @@ import numpy as np
 from ..audio.features import load_npy_windows
 from ..io import AudioTrack, MediaError, read_audio
 from ..lock import writes_folder
-from ..model.data import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
-from ..outputs import check_folder_output
+from ..formats.dataset import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
+from ..formats.outputs import check_folder_output
 from .landmarks import eye_centres_px, eye_openness, mouth_centres
 from .pipeline import PreprocessError, scene_bounds
 
 __all__ = ["adnerf_pose_to_ours", "import_adnerf", "ours_pose_to_adnerf", "parse_adnerf_parsing"]
+
+SOURCE_PARSING = "parsing"  # the AD-NeRF folder's label images (its format, not ours)
 
 FLIP = np.diag([1.0, -1.0, -1.0])
 FEATURE_KIND = "deepspeech"
@@ -219,7 +221,7 @@ def import_adnerf(
     labels = np.empty((n, H, W), np.uint8)
     for k, img_id in enumerate(ids):
         img = _read_image(image_dir / f"{img_id}.jpg")
-        par = _read_image(src / "parsing" / f"{img_id}.png")
+        par = _read_image(src / SOURCE_PARSING / f"{img_id}.png")
         if img.shape[:2] != (H, W) or par.shape[:2] != (H, W):
             raise PreprocessError(f"frame {img_id}: image {img.shape[:2]} or parsing {par.shape[:2]} does not match bc.jpg ({H}, {W})")
         frames[k] = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
@@ -283,12 +285,8 @@ def import_adnerf(
     for note in notes:
         warnings.warn(note, stacklevel=2)
 
-    def extra(folder: Path) -> None:
-        if landmarks is not None:
-            np.save(folder / "landmarks.npy", landmarks)
-
     eye = None if landmarks is None else eye_openness(landmarks)
-    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, eye=eye, extra=extra, overwrite=overwrite, inputs=inputs)
+    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, eye=eye, landmarks=landmarks, overwrite=overwrite, inputs=inputs)
     return {
         "dataset": str(out),
         "frames": n,

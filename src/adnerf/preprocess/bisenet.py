@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..model.data import LABEL_HEAD, LABEL_TORSO
+from ..formats.dataset import LABEL_HEAD, LABEL_TORSO
 
 __all__ = ["BiSeNet", "BiSeNetParser", "CELEBAMASK_TO_LABEL", "N_CLASSES", "load_bisenet"]
 

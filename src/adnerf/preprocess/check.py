@@ -23,7 +23,7 @@ import numpy as np
 
 from ..ridge import pearson
 from ..metrics import psnr
-from ..model.data import load_dataset
+from ..formats.dataset import load_dataset
 from .headpose import align_poses, project_points
 from .parsing import layer_check, torso_check
 from .pipeline import LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN, PERSON_AT_BOTTOM_MIN
@@ -71,10 +71,10 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
         A dict of figures, the bars, and ``passed`` per bar.
 
     Raises:
-        adnerf.model.data.DatasetError: A folder is not a dataset, the truth folder has no ``truth/``, or
+        adnerf.formats.dataset.DatasetError: A folder is not a dataset, the truth folder has no ``truth/``, or
             the two have different frame counts or sizes.
     """
-    from ..model.data import DatasetError
+    from ..formats.dataset import DatasetError
 
     est = load_dataset(dataset, truth=False)
     ref = load_dataset(truth)
@@ -112,9 +112,8 @@ def check_preprocess(dataset: str | Path, truth: str | Path) -> dict:
         out["eye_error_median_px"] = float(np.median(eye_err))
     if est.eye is not None and ref.truth.eye is not None:
         out["eye_openness_corr"] = pearson(est.eye, ref.truth.eye)
-    lms = Path(dataset) / "landmarks.npy"
-    if lms.exists():  # the mouth in the head layer: in the written parsing and in the truth's
-        landmarks = np.load(lms)
+    if est.landmarks is not None:  # the mouth in the head layer: in the written parsing and in the truth's
+        landmarks = est.landmarks
         out.update({f"layers_{k}": v for k, v in layer_check(est.parsing, landmarks).items()})
         out.update({f"layers_truth_{k}": v for k, v in layer_check(ref.truth.parsing, landmarks).items()})
         # the clothes in the person: the bottom edge under the face, in the written parsing and the truth's

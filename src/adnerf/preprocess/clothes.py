@@ -34,7 +34,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..model.data import LABEL_TORSO
+from ..formats.dataset import LABEL_TORSO
 from .parsing import CHIN_TIP, SHOULDERS_BELOW_CHIN, _fill_holes, face_widths, grabcut_clip
 
 __all__ = ["complete_torso", "clothes_seeds", "STRIP", "STRIP_HALF_WIDTH", "BAND_ABOVE_CHIN"]

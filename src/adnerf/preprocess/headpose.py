@@ -17,7 +17,7 @@ import torch
 from kornia.geometry.camera import project_points as kornia_project
 
 from ..cameras import intrinsics_matrix
-from ..model.data import LABEL_HEAD
+from ..formats.dataset import LABEL_HEAD
 from ..pose import mean_rotation, rotation_angle
 from .bundle import bundle_adjust, ellipsoid_points
 from .tracking import Tracks

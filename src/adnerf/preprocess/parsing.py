@@ -2,7 +2,7 @@
 
 A parser maps the whole clip ``(N, H, W, 3)`` uint8 RGB to label maps ``(N, H, W)`` uint8 with
 0 background, 1 head (face, hair, ears) and 2 torso (neck, shoulders, clothes) -- the labels of
-:mod:`adnerf.model.data`. Parsers see the whole clip, not one frame, because the camera is static and
+:mod:`adnerf.formats.dataset`. Parsers see the whole clip, not one frame, because the camera is static and
 the background is the same in every frame: the default parser exploits exactly that.
 
 Backends (:func:`adnerf.preprocess.parsers.make_parser`): ``"classical"`` (default, no weights), a temporal background model
@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from ..model.data import LABEL_HEAD, LABEL_TORSO
+from ..formats.dataset import LABEL_HEAD, LABEL_TORSO
 from ..threads import in_threads
 
 __all__ = ["Parser", "ClassicalParser", "split_head_torso", "split_at_jaw", "split_at_landmarks", "layer_check", "torso_check", "person_hull", "grabcut_clip", "face_widths", "JAW_MARGIN", "SHOULDERS_BELOW_CHIN", "SHOULDER_HALF_WIDTH"]

@@ -44,16 +44,17 @@ import numpy as np
 from ..atomic import atomic_path
 from ..io import AudioTrack, MediaError, read_audio, read_video
 from ..lock import writes_folder
-from ..model.data import (
+from ..formats.dataset import (
     LABEL_HEAD,
     LABEL_TORSO,
     DatasetError,
+    DatasetFolder,
     SceneMeta,
     save_dataset,
     tail_split,
     write_wav,
 )
-from ..outputs import OutputError, check_folder_output
+from ..formats.outputs import OutputError, check_folder_output
 from .clothes import complete_torso
 from .cuts import find_cuts
 from .frame_grid import nominal_rate, regular_grid
@@ -265,6 +266,16 @@ class _Work:
             base += "|" + json.dumps({k: getattr(config, k) for k in _STEP_KEYS[step]}, sort_keys=True)
             self.keys[step] = hashlib.sha256(base.encode()).hexdigest()[:16]
 
+    @property
+    def audio(self) -> Path:
+        """The decoded audio track (16 kHz mono WAV, clock at the first frame's time)."""
+        return self.folder / "decoded_audio.wav"
+
+    @property
+    def plate(self) -> Path:
+        """The plate step's background plate (PNG)."""
+        return self.folder / "plate.png"
+
     def done(self, step: str) -> bool:
         return self.record.get(step, {}).get("key") == self.keys[step]
 
@@ -442,7 +453,7 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
         gaps = [f"starts {late:.2f} s after the first frame" if late > 1.0 / fps else "", f"ends {early:.2f} s before the last frame" if early > 1.0 / fps else ""]
         if any(gaps):
             _report_warning(doc, "audio_warning", f"{video}: the audio track {' and '.join(g for g in gaps if g)}: padded with silence there (the mouth of those frames is trained on silence)")
-        write_wav(work.folder / "audio.wav", AudioTrack(samples.astype(np.float32), rate, 0.0))
+        write_wav(work.audio, AudioTrack(samples.astype(np.float32), rate, 0.0))
     work.save_json("decode", {"fps": fps, "n": n, "width": w, "height": h, "seconds": seconds, "audio": v.audio is not None, "framing": framing.to_dict(), "doc": doc})
     bar("decode", 1, 1)
     return doc
@@ -455,7 +466,7 @@ def _step_features(work: _Work, config: PreprocessConfig, bar: Bar) -> None:
     if config.features == "none":
         work.save("features", np.zeros((len(times), 16, 1), np.float32))
     else:
-        audio = read_audio(work.folder / "audio.wav")
+        audio = read_audio(work.audio)
         work.save("features", speech_windows(audio, times, FeatureSpec(kind=config.features)))
     bar("features", 1, 1)
 
@@ -677,7 +688,7 @@ def _step_plate(work: _Work, bar: Bar) -> dict:
     from .plate import background_plate
 
     plate = background_plate(work.load("frames"), _labels(work))
-    with atomic_path(work.folder / "background.png") as tmp:
+    with atomic_path(work.plate) as tmp:
         cv2.imwrite(str(tmp), cv2.cvtColor(plate.image, cv2.COLOR_RGB2BGR))
     doc = {"filled_fraction": plate.filled_fraction}
     work.save_json("plate", doc)
@@ -786,10 +797,10 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         framing=info["framing"] if "framing" in info and (Framing.from_dict(info["framing"]).cropped or config.start or config.end is not None) else None,
     )
     if info["audio"]:
-        audio = read_audio(work.folder / "audio.wav")
+        audio = read_audio(work.audio)
     else:
         audio = AudioTrack(np.zeros(int(16000 * info["seconds"]), np.float32), 16000, 0.0)
-    plate = cv2.cvtColor(cv2.imread(str(work.folder / "background.png")), cv2.COLOR_BGR2RGB)
+    plate = cv2.cvtColor(cv2.imread(str(work.plate)), cv2.COLOR_BGR2RGB)
     report = {
         "video": str(video),
         "frames": n,
@@ -823,7 +834,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
                 report,
                 "torso_warning",
                 f"only {share:.0%} of the frame's bottom edge under the face (a face width either side of the chin) is labelled person "
-                f"(the worst frame {report['torso']['person_at_bottom_worst']:.0%}): clothes were probably taken for background and will be rendered as the plate (see preprocess_report.png). "
+                f"(the worst frame {report['torso']['person_at_bottom_worst']:.0%}): clothes were probably taken for background and will be rendered as the plate (see the report's contact sheet). "
                 + (
                     "The classical parser finds the person by motion, and clothes that never move look like the wall; "
                     + ("--clothes grabcut adds them back by colour, or " if config.clothes == "none" else "adding them back by colour did not find them either (a colour like the wall's?); ")
@@ -836,15 +847,13 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         report["layers"] = {"note": "no landmarks (--face none): the fraction of the mouth in the head layer is not known"}
     sheet = _contact_sheet(frames, labels, poses, K, config.head_width, landmarks)
 
-    def extra(folder: Path) -> None:
+    def extra(folder: DatasetFolder) -> None:
         report["timings_s"]["write"] = round(time.perf_counter() - t0, 3)  # all but the final rename
-        (folder / "preprocess_report.json").write_text(json.dumps(report, indent=1))
-        cv2.imwrite(str(folder / "preprocess_report.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
-        if landmarks is not None:
-            np.save(folder / "landmarks.npy", landmarks)
+        folder.report.write_text(json.dumps(report, indent=1))
+        cv2.imwrite(str(folder.report_image), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
     eye = None if landmarks is None else eye_openness(landmarks)  # the head's eye condition
-    save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, eye=eye, extra=extra, overwrite=overwrite, inputs=[video])
+    save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, eye=eye, landmarks=landmarks, extra=extra, overwrite=overwrite, inputs=[video])
     bar("write", 1, 1)
     return report
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..model.data import LABEL_BACKGROUND
+from ..formats.dataset import LABEL_BACKGROUND
 
 __all__ = ["moving_regions"]
 

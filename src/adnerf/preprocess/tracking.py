@@ -22,7 +22,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..model.data import LABEL_HEAD
+from ..formats.dataset import LABEL_HEAD
 from ..threads import in_threads
 
 __all__ = ["FLOWS", "TrackConfig", "Tracks", "dense_flow", "rigid_region", "track_points", "extend_tracks"]

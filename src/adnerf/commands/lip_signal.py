@@ -1,0 +1,51 @@
+"""``adnerf lip-signal``: how much a preprocessed clip's audio predicts its mouth opening."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from ..evaluation.lip_signal import dataset_lip_signal
+from ..formats.dataset import DatasetError
+from .options import CliError, add_json
+
+__all__ = ["register", "run"]
+
+WORDS = {
+    "loudness_corr": "opening vs voiced loudness (corr, same frame)",
+    "loudness_offset_frames": "best shift, frames (> 0: mouth after sound)",
+    "loudness_corr_at_offset": "corr at that shift",
+    "ridge_tail_corr": "audio -> opening, fit on train, held-out corr",
+    "ridge_cv_corr": "audio -> opening, {blocks}-block cross-validated corr",
+}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("lip-signal", help="how much a preprocessed clip's audio predicts its mouth opening: the lip-sync ceiling of training on it")
+    p.add_argument("dataset", help="dataset written by adnerf preprocess (needs its face landmarks)")
+    p.add_argument("--blocks", type=int, default=6, help="contiguous cross-validation blocks")
+    p.add_argument("--guard", type=int, default=8, help="frames left out on either side of a tested block")
+    add_json(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        signal = dataset_lip_signal(args.dataset, blocks=args.blocks, guard=args.guard)
+    except DatasetError:  # not a dataset, no landmarks: main prints it
+        raise
+    except ValueError as exc:  # too few frames for the folds
+        raise CliError(str(exc)) from exc
+    doc = signal.to_dict()
+    if args.json:
+        print(json.dumps(doc))
+        return 0
+    print(f"{args.dataset}: {doc['frames']} frames")
+    for key, text in WORDS.items():
+        value = doc[key]
+        text = text.format(blocks=args.blocks)
+        print(f"{text:>48}: {value:.3f}" if isinstance(value, float) else f"{text:>48}: {value}")
+    print(f"{'per block':>48}: " + " ".join(f"{c:.2f}" for c in doc["ridge_cv_blocks"]))
+    if doc["ridge_cv_corr"] is not None and doc["ridge_cv_corr"] < 0.3:
+        print("a cross-validated correlation this low means the clip is too short (or its mouth too little tied to its sound) for any audio encoder to learn its lip movements; AD-NeRF trains on 3-5 minutes")
+    return 0
