@@ -187,7 +187,7 @@ def test_a_file_that_decodes_too_little_is_refused_in_one_line(scene: Path, tmp_
 
 
 def test_fps_on_a_steady_clip_says_it_resamples_not_that_the_clip_is_variable(tmp_path: Path) -> None:
-    from adnerf.preprocess.pipeline import PreprocessConfig, _step_decode, _Work
+    from adnerf.preprocess.pipeline import PreprocessConfig, StepContext, _step_decode, _Work
 
     frames = _pattern(n=60)
     rate = 16000
@@ -196,7 +196,7 @@ def test_fps_on_a_steady_clip_says_it_resamples_not_that_the_clip_is_variable(tm
 
     def decode(fps: float | None) -> dict:
         config = PreprocessConfig(fps=fps, min_seconds=1.0)
-        return _step_decode(steady, _Work(tmp_path / f"work{fps}", steady, config), config, lambda *a: None)
+        return _step_decode(StepContext(steady, _Work(tmp_path / f"work{fps}", steady, config), config, lambda *a: None))
 
     assert "timing_warning" not in decode(None) and "timing_warning" not in decode(30.0)
     doc = decode(25.0)
@@ -205,4 +205,4 @@ def test_fps_on_a_steady_clip_says_it_resamples_not_that_the_clip_is_variable(tm
     # A clip that is not steady keeps the variable-rate wording under --fps too.
     jitter = write_phone_file(tmp_path / "jitter.mp4", frames[:59], np.array([t for i, t in enumerate(np.arange(60) / 30.0) if i != 20]), audio, rate)
     config = PreprocessConfig(fps=30.0, min_seconds=1.0)
-    assert "variable frame rate" in _step_decode(jitter, _Work(tmp_path / "workj", jitter, config), config, lambda *a: None)["timing_warning"]
+    assert "variable frame rate" in _step_decode(StepContext(jitter, _Work(tmp_path / "workj", jitter, config), config, lambda *a: None))["timing_warning"]

@@ -107,9 +107,9 @@ def test_sigterm_during_preprocessing_keeps_the_finished_steps_and_says_which_wa
     # however busy the machine is (a 3 s scene's pose step can end before a busy parent polls).
     begun = tmp_path / "pose_begun"
     child_code = (
-        "import sys, time; from pathlib import Path; from adnerf.preprocess import pipeline; real = pipeline._step_pose\n"
-        "def pose(*a, **k):\n    Path(sys.argv[1]).touch(); time.sleep(120); return real(*a, **k)\n"
-        "pipeline._step_pose = pose\nfrom adnerf.cli import main; sys.exit(main(sys.argv[2:]))"
+        "import sys, time; from dataclasses import replace; from pathlib import Path; from adnerf.preprocess import pipeline\n"
+        "def pose(step):\n    def run(ctx):\n        Path(sys.argv[1]).touch(); time.sleep(120); return step.run(ctx)\n    return replace(step, run=run)\n"
+        "pipeline.PIPELINE = tuple(pose(s) if s.name == 'pose' else s for s in pipeline.PIPELINE)\nfrom adnerf.cli import main; sys.exit(main(sys.argv[2:]))"
     )
     child = subprocess.Popen([sys.executable, "-c", child_code, str(begun), *argv], stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
     steps = tmp_path / ".data.preprocess" / "steps.json"
@@ -850,3 +850,32 @@ def test_the_pose_tracked_at_a_working_size_keeps_the_frames_pixels(scene: Path)
     # the same problem, but its residuals are in pixels twice the size, which the robust loss's
     # pixel threshold weighs otherwise: 0.35 degrees apart here
     assert np.median(angle) < 1.0, np.median(angle)
+
+
+def test_a_step_runs_once_and_reads_back_until_its_settings_change(tmp_path: Path) -> None:
+    """The generic runner (:func:`run_step`): a finished step is read back from the work folder,
+    not run again; a change of one of its settings runs it again, a change of another step's
+    setting does not; a change of the video (its modification time) does."""
+    from adnerf.preprocess.pipeline import PreprocessConfig, Step, StepContext, _Work, run_step
+
+    video = tmp_path / "clip.mp4"
+    video.write_bytes(b"not decoded here")
+    calls = []
+
+    def work_of(ctx: StepContext) -> dict:
+        calls.append(ctx.config.flow)
+        ctx.work.save("marker", np.arange(3))
+        return {"flow": ctx.config.flow}
+
+    pose = Step("pose", ("flow",), work_of)
+    folder = tmp_path / "work"
+
+    def run(config: PreprocessConfig) -> dict:
+        return run_step(pose, StepContext(video, _Work(folder, video, config), config, lambda *a: None))
+
+    assert run(PreprocessConfig()) == {"flow": "dis"} and calls == ["dis"]
+    assert run(PreprocessConfig()) == {"flow": "dis"} and calls == ["dis"]  # read back
+    assert run(PreprocessConfig(test_fraction=0.2)) == {"flow": "dis"} and calls == ["dis"]  # the write step's setting
+    assert run(PreprocessConfig(flow="deepflow")) == {"flow": "deepflow"} and calls == ["dis", "deepflow"]
+    os.utime(video, ns=(0, 0))
+    assert run(PreprocessConfig(flow="deepflow")) == {"flow": "deepflow"} and calls == ["dis", "deepflow", "deepflow"]

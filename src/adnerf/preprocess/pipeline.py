@@ -36,7 +36,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -70,9 +70,8 @@ from .landmarks import (
 )
 from .parsing import JAW_MARGIN, layer_check, split_at_landmarks, torso_check
 
-__all__ = ["PreprocessConfig", "PreprocessError", "preprocess_video", "step_bars", "STEPS"]
+__all__ = ["PIPELINE", "PreprocessConfig", "PreprocessError", "STEPS", "Step", "StepContext", "preprocess_video", "run_step", "step_bars"]
 
-STEPS = ("decode", "features", "parse", "face", "pose", "plate", "write")
 # Below these the report warns that the mouth is not in the head layer (issue measured on a real
 # clip: a row cut at the upper lip left 20% of the lip landmarks in the head).
 LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN = 0.98, 0.9
@@ -220,16 +219,6 @@ class PreprocessConfig:
             raise PreprocessError(f"--test-fraction must lie in (0, 0.5); got {self.test_fraction}")
 
 
-# What each step's result depends on (a change re-runs the step and the ones after it).
-_STEP_KEYS = {
-    "decode": ("min_seconds", "fps"),
-    "features": ("features",),
-    "parse": ("parser", "min_face_fraction"),
-    "face": ("face", "cut", "clothes"),
-    "pose": ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "pose_landmarks", "smooth_sigma", "pose_segment", "pose_overlap"),
-    "plate": (),
-    "write": ("test_fraction",),
-}
 
 
 def code_fingerprint() -> str:
@@ -300,6 +289,46 @@ class _Work:
 
 
 Bar = Callable[[str, int, int], None]
+
+
+class StepContext(NamedTuple):
+    """What a step works with: the video, the work folder (where it reads the earlier steps'
+    outputs and saves its own), the settings and the progress callback."""
+
+    video: Path
+    work: "_Work"
+    config: PreprocessConfig
+    bar: Bar
+
+
+@dataclass(frozen=True)
+class Step:
+    """One cached step of preprocessing.
+
+    Attributes:
+        name: The step's name: its progress bar, its seconds in the report, its cache entry.
+        keys: The :class:`PreprocessConfig` fields its result depends on; a change re-runs it and
+            every step after it (with the video and adnerf's code, :class:`_Work`).
+        run: The work: reads the earlier steps' outputs from ``ctx.work``, saves its own there and
+            returns its part of the report.
+    """
+
+    name: str
+    keys: tuple[str, ...]
+    run: Callable[[StepContext], dict]
+
+
+def run_step(step: Step, ctx: StepContext) -> dict:
+    """A step's part of the report: read back when the step finished in the work folder under the
+    same key, else run, its part saved, its seconds recorded (the step then counts as finished)."""
+    if ctx.work.done(step.name):
+        ctx.bar(f"{step.name} (done before)", 1, 1)
+        return ctx.work.load_json(f"report_{step.name}")
+    t0 = time.perf_counter()
+    doc = step.run(ctx)
+    ctx.work.save_json(f"report_{step.name}", doc)
+    ctx.work.finish(step.name, time.perf_counter() - t0)
+    return doc
 
 
 def _report_warning(doc: dict, key: str, msg: str) -> None:
@@ -394,7 +423,27 @@ def _framing(video: Path, config: PreprocessConfig) -> tuple[Framing, dict]:
         raise PreprocessError(f"{video}: {exc}") from exc
 
 
-def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+def _cut_check(video: Path, frames: np.ndarray, fps: float, config: PreprocessConfig, doc: dict) -> None:
+    """Refuse a clip whose picture jumps (cuts, reframings) unless ``--allow-cuts``; the jumps go
+    in the decode step's report ``doc``."""
+    n = len(frames)
+    cuts = find_cuts(frames)
+    doc["cuts"] = [{"frame": k, "time_s": round(config.start + k / fps, 3), "changed": round(float(cuts.changed[k - 1]), 3)} for k in cuts.frames]
+    if cuts.frames:
+        a, b = cuts.longest(n)
+        at = ", ".join(f"{c['time_s']:.2f} s" for c in doc["cuts"][:6]) + (" ..." if len(cuts.frames) > 6 else "")
+        what = f"{len(cuts.frames)} cut(s) or reframing(s) (the picture jumps at {at} into the video)"
+        t0, t1 = config.start + a / fps, config.start + b / fps
+        if not config.allow_cuts:
+            raise PreprocessError(
+                f"{video}: the clip has {what}; a static camera is assumed, and two framings would train as one. "
+                f"The longest clean stretch is {t0:.2f}-{t1:.2f} s ({(b - a) / fps:.1f} s): --start {t0:.2f} --end {t1:.2f} uses it; --allow-cuts keeps every frame"
+            )
+        _report_warning(doc, "cuts_warning", f"{video}: the clip has {what}; kept (--allow-cuts)")
+
+
+def _step_decode(ctx: StepContext) -> dict:
+    video, work, config, bar = ctx
     framing, found = _framing(video, config)
     v = read_video(video, audio=True, start=config.start, end=config.end, transform=framing.transform if framing.cropped else None)
     doc: dict = {"source_frames": len(v.frames), "rotation_deg": v.rotation, "framing": framing.to_dict()}
@@ -413,19 +462,7 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
     if v.audio is None and config.features != "none":
         raise PreprocessError(f"{video}: the video has no audio track (use --features none to make a silent dataset)")
     doc.update(fps=fps, duplicated=grid.duplicated, dropped=grid.dropped)
-    cuts = find_cuts(frames)
-    doc["cuts"] = [{"frame": k, "time_s": round(config.start + k / fps, 3), "changed": round(float(cuts.changed[k - 1]), 3)} for k in cuts.frames]
-    if cuts.frames:
-        a, b = cuts.longest(n)
-        at = ", ".join(f"{c['time_s']:.2f} s" for c in doc["cuts"][:6]) + (" ..." if len(cuts.frames) > 6 else "")
-        what = f"{len(cuts.frames)} cut(s) or reframing(s) (the picture jumps at {at} into the video)"
-        t0, t1 = config.start + a / fps, config.start + b / fps
-        if not config.allow_cuts:
-            raise PreprocessError(
-                f"{video}: the clip has {what}; a static camera is assumed, and two framings would train as one. "
-                f"The longest clean stretch is {t0:.2f}-{t1:.2f} s ({(b - a) / fps:.1f} s): --start {t0:.2f} --end {t1:.2f} uses it; --allow-cuts keeps every frame"
-            )
-        _report_warning(doc, "cuts_warning", f"{video}: the clip has {what}; kept (--allow-cuts)")
+    _cut_check(video, frames, fps, config, doc)
     if not grid.identity:
         own = nominal_rate(v.timestamps, v.fps)
         if config.fps and regular_grid(v.timestamps, own).identity:  # a steady clip, asked for another rate
@@ -454,14 +491,15 @@ def _step_decode(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -
         if any(gaps):
             _report_warning(doc, "audio_warning", f"{video}: the audio track {' and '.join(g for g in gaps if g)}: padded with silence there (the mouth of those frames is trained on silence)")
         write_wav(work.audio, AudioTrack(samples.astype(np.float32), rate, 0.0))
-    work.save_json("decode", {"fps": fps, "n": n, "width": w, "height": h, "seconds": seconds, "audio": v.audio is not None, "framing": framing.to_dict(), "doc": doc})
+    work.save_json("decode", {"fps": fps, "n": n, "width": w, "height": h, "seconds": seconds, "audio": v.audio is not None, "framing": framing.to_dict()})
     bar("decode", 1, 1)
     return doc
 
 
-def _step_features(work: _Work, config: PreprocessConfig, bar: Bar) -> None:
+def _step_features(ctx: StepContext) -> dict:
     from ..audio.features import FeatureSpec, speech_windows
 
+    _, work, config, bar = ctx
     times = work.load("times")
     if config.features == "none":
         work.save("features", np.zeros((len(times), 16, 1), np.float32))
@@ -469,10 +507,13 @@ def _step_features(work: _Work, config: PreprocessConfig, bar: Bar) -> None:
         audio = read_audio(work.audio)
         work.save("features", speech_windows(audio, times, FeatureSpec(kind=config.features)))
     bar("features", 1, 1)
+    return {}
 
 
-def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+def _step_parse(ctx: StepContext) -> dict:
     from .parsers import make_parser
+
+    video, work, config, bar = ctx
 
     frames = work.load("frames")
     try:
@@ -521,12 +562,14 @@ def _step_parse(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) ->
             warnings.warn(msg, stacklevel=2)
             _report_warning(doc, "background_warning", msg)
     work.save("parsing", labels)
-    work.save_json("parse", doc)
+    work.save_json("parse", doc)  # the face step reads how the parser cut
     return doc
 
 
-def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+def _step_face(ctx: StepContext) -> dict:
     from .landmarks import make_face_detector, track_faces
+
+    video, work, config, bar = ctx
 
     try:
         detector = make_face_detector(config.face)
@@ -537,7 +580,6 @@ def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> 
     if detector is None:
         cut = "the parser's own" if parser_cut else "the silhouette's narrowest row: a guess (no landmarks with --face none)"
         doc = {"backend": "none", "head_torso_cut": cut}
-        work.save_json("face", doc)
         bar("face", 1, 1)
         return doc
     frames, labels = work.load("frames"), work.load("parsing")
@@ -567,7 +609,6 @@ def _step_face(video: Path, work: _Work, config: PreprocessConfig, bar: Bar) -> 
         "box_width_median_px": float(np.median(track.boxes[:, 2] - track.boxes[:, 0])),
         "clothes": "left as parsed" if clothes is None else {"completed_by": "grabcut below the chin (adnerf.preprocess.clothes)", **clothes},
     }
-    work.save_json("face", doc)
     return doc
 
 
@@ -644,8 +685,10 @@ def _landmark_rms(per_segment: list[float]) -> float | None:
     return float(np.sqrt(np.mean(np.square(finite)))) if finite else None
 
 
-def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
+def _step_pose(ctx: StepContext) -> dict:
     from .headpose import chain_segments, smooth_poses
+
+    _, work, config, bar = ctx
 
     # The parser's labels: the pose needs the rigid upper head (its box seeds the ellipsoid), not
     # the jaw-line layers, which reach down the jaw that moves with the speech.
@@ -680,20 +723,33 @@ def _step_pose(work: _Work, config: PreprocessConfig, bar: Bar) -> dict:
         "ba_iterations": int(max(est.iterations for est, _, _ in results)),
         "reference_frame": int(results[0][0].reference),
     }
-    work.save_json("pose", doc)
     return doc
 
 
-def _step_plate(work: _Work, bar: Bar) -> dict:
+def _step_plate(ctx: StepContext) -> dict:
     from .plate import background_plate
+
+    _, work, _, bar = ctx
 
     plate = background_plate(work.load("frames"), _labels(work))
     with atomic_path(work.plate) as tmp:
         cv2.imwrite(str(tmp), cv2.cvtColor(plate.image, cv2.COLOR_RGB2BGR))
     doc = {"filled_fraction": plate.filled_fraction}
-    work.save_json("plate", doc)
     bar("plate", 1, 1)
     return doc
+
+
+# The cached steps in order; ``write`` (the dataset itself) follows them and is never cached.
+PIPELINE = (
+    Step("decode", ("min_seconds", "fps"), _step_decode),
+    Step("features", ("features",), _step_features),
+    Step("parse", ("parser", "min_face_fraction"), _step_parse),
+    Step("face", ("face", "cut", "clothes"), _step_face),
+    Step("pose", ("flow", "focal", "head_width", "extend_passes", "shape_sigma", "pose_landmarks", "smooth_sigma", "pose_segment", "pose_overlap"), _step_pose),
+    Step("plate", (), _step_plate),
+)
+STEPS = tuple(step.name for step in PIPELINE) + ("write",)
+_STEP_KEYS = {**{step.name: step.keys for step in PIPELINE}, "write": ("test_fraction",)}
 
 
 def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, mouth_pixels: np.ndarray | None = None, eye_pixels: np.ndarray | None = None) -> dict:
@@ -772,6 +828,38 @@ def _contact_sheet(
     return np.concatenate(tiles, axis=1)
 
 
+def _layer_checks(report: dict, labels: np.ndarray, landmarks: np.ndarray | None, config: PreprocessConfig) -> None:
+    """The report's ``layers`` and ``torso`` checks of the final parsing, with their warnings."""
+    if landmarks is not None:
+        report["layers"] = layer_check(labels, landmarks)
+        low = report["layers"]["lip_in_head"] < LIP_IN_HEAD_MIN or report["layers"]["chin_lip_midpoint_in_head"] < MIDPOINT_IN_HEAD_MIN
+        if low:
+            _report_warning(
+                report,
+                "layers_warning",
+                f"only {report['layers']['lip_in_head']:.0%} of the lip landmarks and {report['layers']['chin_lip_midpoint_in_head']:.0%} of the points between chin "
+                "and lower lip lie in the head layer: the mouth would be rendered by the torso, which does not follow the audio",
+            )
+        report["torso"] = torso_check(labels, landmarks)
+        share = report["torso"]["person_at_bottom"]
+        if share is not None and share < PERSON_AT_BOTTOM_MIN:
+            _report_warning(
+                report,
+                "torso_warning",
+                f"only {share:.0%} of the frame's bottom edge under the face (a face width either side of the chin) is labelled person "
+                f"(the worst frame {report['torso']['person_at_bottom_worst']:.0%}): clothes were probably taken for background and will be rendered as the plate (see the report's contact sheet). "
+                + (
+                    "The classical parser finds the person by motion, and clothes that never move look like the wall; "
+                    + ("--clothes grabcut adds them back by colour, or " if config.clothes == "none" else "adding them back by colour did not find them either (a colour like the wall's?); ")
+                    + "--parser mediapipe segments the person by appearance"
+                    if config.parser == "classical"
+                    else "Check the parsing of this clip"
+                ),
+            )
+    else:
+        report["layers"] = {"note": "no landmarks (--face none): the fraction of the mouth in the head layer is not known"}
+
+
 def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, docs: dict, bar: Bar, overwrite: bool) -> dict:
     t0 = time.perf_counter()
     info = work.load_json("decode")
@@ -817,34 +905,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         "bounds": b,
         "timings_s": {s: work.record.get(s, {}).get("seconds") for s in STEPS if s != "write"},
     }
-    if landmarks is not None:
-        report["layers"] = layer_check(labels, landmarks)
-        low = report["layers"]["lip_in_head"] < LIP_IN_HEAD_MIN or report["layers"]["chin_lip_midpoint_in_head"] < MIDPOINT_IN_HEAD_MIN
-        if low:
-            _report_warning(
-                report,
-                "layers_warning",
-                f"only {report['layers']['lip_in_head']:.0%} of the lip landmarks and {report['layers']['chin_lip_midpoint_in_head']:.0%} of the points between chin "
-                "and lower lip lie in the head layer: the mouth would be rendered by the torso, which does not follow the audio",
-            )
-        report["torso"] = torso_check(labels, landmarks)
-        share = report["torso"]["person_at_bottom"]
-        if share is not None and share < PERSON_AT_BOTTOM_MIN:
-            _report_warning(
-                report,
-                "torso_warning",
-                f"only {share:.0%} of the frame's bottom edge under the face (a face width either side of the chin) is labelled person "
-                f"(the worst frame {report['torso']['person_at_bottom_worst']:.0%}): clothes were probably taken for background and will be rendered as the plate (see the report's contact sheet). "
-                + (
-                    "The classical parser finds the person by motion, and clothes that never move look like the wall; "
-                    + ("--clothes grabcut adds them back by colour, or " if config.clothes == "none" else "adding them back by colour did not find them either (a colour like the wall's?); ")
-                    + "--parser mediapipe segments the person by appearance"
-                    if config.parser == "classical"
-                    else "Check the parsing of this clip"
-                ),
-            )
-    else:
-        report["layers"] = {"note": "no landmarks (--face none): the fraction of the mouth in the head layer is not known"}
+    _layer_checks(report, labels, landmarks, config)
     sheet = _contact_sheet(frames, labels, poses, K, config.head_width, landmarks)
 
     def extra(folder: DatasetFolder) -> None:
@@ -883,31 +944,12 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
     check_folder_output(out, "dataset", inputs=[video], overwrite=overwrite)
     bar = progress or (lambda step, done, total: None)
     work = _Work(out.with_name(f".{out.name}.preprocess"), video, config)
+    ctx = StepContext(video, work, config, bar)
     docs: dict = {}
     failed = True
     try:
-        for step in STEPS[:-1]:
-            if work.done(step):
-                if step in ("parse", "face", "pose", "plate"):
-                    docs[step] = work.load_json(step)
-                elif step == "decode":
-                    docs[step] = work.load_json(step).get("doc", {})
-                bar(f"{step} (done before)", 1, 1)
-                continue
-            t0 = time.perf_counter()
-            if step == "decode":
-                docs[step] = _step_decode(video, work, config, bar)
-            elif step == "features":
-                _step_features(work, config, bar)
-            elif step == "parse":
-                docs[step] = _step_parse(video, work, config, bar)
-            elif step == "face":
-                docs[step] = _step_face(video, work, config, bar)
-            elif step == "pose":
-                docs[step] = _step_pose(work, config, bar)
-            elif step == "plate":
-                docs[step] = _step_plate(work, bar)
-            work.finish(step, time.perf_counter() - t0)
+        for step in PIPELINE:
+            docs[step.name] = run_step(step, ctx)
         report = _step_write(video, out, work, config, docs, bar, overwrite)
         failed = False
     except (PreprocessError, MediaError, DatasetError, OutputError):
@@ -915,7 +957,7 @@ def preprocess_video(video: str | Path, out: str | Path, config: PreprocessConfi
         shutil.rmtree(work.folder, ignore_errors=True)
         raise
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the finished steps stay in the work folder
-        kept = [name for name in STEPS[:-1] if work.done(name)]
+        kept = [step.name for step in PIPELINE if work.done(step.name)]
         cut = next((name for name in STEPS if name not in kept), STEPS[-1])
         raise type(exc)(f"stopped in the {cut} step; {len(kept)} finished step(s) kept in {work.folder} ({', '.join(kept) or 'none'}): the same command resumes there") from None
     finally:
