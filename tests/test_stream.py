@@ -168,3 +168,26 @@ def test_adnerf_stream_writes_the_mp4_from_a_file_and_from_stdin(run, speech: Pa
     live = read_video(tmp_path / "live.mp4")
     assert len(live.frames) == n and live.audio is not None
     assert "look-ahead" in proc.stdout.decode()
+
+
+def test_the_causal_stream_smooths_over_past_frames_only_and_waits_less(run, speech: Path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+    """``causal=True``: each frame's audio code is AudioAttNet over that frame and the ones before
+    it, the window clamped at the frame (as the offline render clamps it at a clip's last frame),
+    and the look-ahead drops by AudioAttNet's following frames. A code that read one frame ahead,
+    or the full neighbourhood at the stream's end, fails."""
+    import torch
+
+    seen = _spy(monkeypatch, stream_module)
+    start, chunks = stream_file_chunks(speech, 0.02)
+    causal, full = Streamer(run, start=start, causal=True), Streamer(run, start=start)
+    after = run.model.config.att_len - run.model.config.att_len // 2 - 1
+    assert after == 3 and causal.lookahead_s == pytest.approx(full.lookahead_s - after / causal.fps)
+    frames = [f for piece in chunks for f in causal.push(piece)] + causal.finish()
+    windows = speech_windows(read_audio(speech, sample_rate=16000), start + np.arange(len(frames)) / causal.fps, FeatureSpec("logmel"))
+    with torch.no_grad():
+        for i, (_, code, _, _) in enumerate(seen):
+            want = run.model.frame_codes(torch.as_tensor(windows[: i + 1]), [i])[0].numpy()
+            np.testing.assert_allclose(code, want, atol=1e-5, rtol=0, err_msg=f"frame {i}")
+    with torch.no_grad():
+        ahead = run.model.frame_codes(torch.as_tensor(windows), [5])[0].numpy()
+    assert np.abs(seen[5][1] - ahead).max() > 1e-4  # the full neighbourhood gives another code

@@ -443,6 +443,20 @@ def stream_cpu() -> list[str]:
               [[r["run"], num(r["audio_seconds"], 1), num(r["lookahead_s"] * 1000, 0), num(r["first_frame_s"]), num(r["realtime_factor"]),
                 num(r["frames"] / r["wall_seconds"], 1), num(r.get("offline_render_fps"), 1)] for r in d["rows"]]),
         "",
+        *stream_causal(),
+    ]
+
+
+def stream_causal() -> list[str]:
+    d = load("stream_causal.json")
+    return [
+        f"`--causal` (AudioAttNet reads no later frame): {d['what']} ({d['machine']}):",
+        "",
+        table(["AudioAttNet window", "look-ahead (ms)", "PSNR (dB)", "mouth PSNR (dB)", "mouth-opening corr (ceiling)"],
+              [[r["mode"], num(r["lookahead_s"] * 1000, 0), num(r["psnr"]), num(r["psnr_mouth"]), f"{num(r['mouth_open_corr'])} ({num(r['mouth_open_corr_gt'])})"] for r in d["rows"]]),
+        "",
+        f"The causal frames differ from the full window's in {d['frames_differing']:.0%} of the frames, by {num(d['causal_vs_full_psnr'], 1)} dB PSNR between the two.",
+        "",
     ]
 
 

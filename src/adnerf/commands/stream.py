@@ -20,7 +20,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "stream",
         help="render a run frame by frame as its speech arrives (a file played as a stream, or raw PCM on stdin), each frame as soon as no later audio can change it",
         description="Frames wait for about 0.3 s of speech after their time at 25 fps (the look-ahead: 140 ms of feature window, 16 ms of FFT, "
-        "and AudioAttNet's 3 following frames) and equal adnerf render's frames of the same audio. Runs trained on log-mel features only.",
+        "and AudioAttNet's 3 following frames) and equal adnerf render's frames of the same audio; with --causal about 0.18 s "
+        "(AudioAttNet reads no later frame; the frames then differ a little from adnerf render's). Runs trained on log-mel features only.",
     )
     p.add_argument("run", help="run folder")
     p.add_argument("--audio", required=True, help="speech file, or - for raw 16 kHz mono signed 16-bit little-endian PCM on standard input (arecord -f S16_LE -r 16000 -c 1)")
@@ -29,6 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pitch", type=number(float, -180, 180), default=0.0, help="degrees added about the horizontal axis")
     p.add_argument("--roll", type=number(float, -180, 180), default=0.0, help="degrees added about the viewing axis")
     p.add_argument("--blink", choices=("auto", "none"), default="auto", help="natural blinks or open eyes, for runs trained with eyes")
+    p.add_argument("--causal", action="store_true", help="lower latency: AudioAttNet smooths each frame's audio code over that frame and the ones before it only (its window clamped there), so a frame waits for its feature window alone")
     p.add_argument("--background", default=None, help="replacement background image")
     p.add_argument("--frames", default=None, help="also write the frames as PNGs into this folder as they come")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output .mp4 and frame PNGs")
@@ -46,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     with tqdm(desc="stream", unit="frame") as bar:
         summary = stream_to_video(
             loaded, args.audio, args.output, chunk_s=args.chunk_ms / 1000.0, yaw=args.yaw, pitch=args.pitch, roll=args.roll,
-            blink=args.blink, background=args.background, frames_dir=args.frames, progress=lambda n: bar.update(n - bar.n),
+            blink=args.blink, background=args.background, frames_dir=args.frames, progress=lambda n: bar.update(n - bar.n), causal=args.causal,
         )  # fmt: skip
     if args.json:
         print(json.dumps(summary))

@@ -56,9 +56,10 @@ def stream_to_video(
     frames_dir: str | Path | None = None,
     progress: Callable[[int], None] | None = None,
     stdin: BinaryIO | None = None,
+    causal: bool = False,
 ) -> dict:
     """Stream ``source`` (a file, or ``"-"`` for PCM on standard input) through a :class:`Streamer`
-    into the mp4 ``out`` (and PNGs in ``frames_dir``).
+    into the mp4 ``out`` (and PNGs in ``frames_dir``); ``causal`` is the Streamer's low-latency mode.
 
     Returns:
         A summary: frames, seconds of audio, the look-ahead, the wall seconds from the first piece of
@@ -73,7 +74,7 @@ def stream_to_video(
     else:
         start, chunks = stream_file_chunks(source, chunk_s)
         pieces, sound = iter(chunks), np.concatenate(chunks) if chunks else np.zeros(0, np.float32)
-    streamer = Streamer(run, plate=plate, yaw=yaw, pitch=pitch, roll=roll, blink=blink, start=start)
+    streamer = Streamer(run, plate=plate, yaw=yaw, pitch=pitch, roll=roll, blink=blink, start=start, causal=causal)
     folder = None if frames_dir is None else Path(frames_dir)
     if folder is not None:
         folder.mkdir(parents=True, exist_ok=True)
@@ -107,6 +108,7 @@ def stream_to_video(
         "frames": n,
         "audio_seconds": seconds,
         "lookahead_s": streamer.lookahead_s,
+        "causal": causal,
         "first_frame_s": streamer.first_frame_s,
         "wall_seconds": wall,
         "realtime_factor": seconds / max(wall, 1e-9),

@@ -6,9 +6,10 @@ engine) and hands back the frames that no later audio can change. A frame waits 
 - its feature window: 16 log-mel features centred on its time, the last 140 ms after it, each
   feature half an FFT (16 ms) wide (:class:`~adnerf.audio.features.StreamingWindows`);
 - AudioAttNet's neighbours, when the run smooths its audio codes: the windows of the
-  ``att_len - att_len // 2 - 1`` frames after it (3 of the paper's 8).
+  ``att_len - att_len // 2 - 1`` frames after it (3 of the paper's 8); none in the causal mode
+  (``causal=True``: the smoothing reads no later frame, its window clamped at the frame itself).
 
-:attr:`Streamer.lookahead_s` is the sum: about 0.3 s at 25 fps. The frames equal those of
+:attr:`Streamer.lookahead_s` is the sum: about 0.3 s at 25 fps (0.18 s causal). The frames equal those of
 :func:`~adnerf.model.render_clip.render_frames` for the same audio, poses and edits (the offline
 ``adnerf render``): the same features, codes, poses, blinks and renderer, computed piece by piece
 (the features to float rounding, about 1e-6, when a piece holds a single feature).
@@ -47,6 +48,10 @@ class Streamer:
         roll: Degrees added about the viewing axis.
         blink: ``"auto"`` (natural blinks) or ``"none"``, for runs whose head reads the eye.
         start: Time of the first sample, seconds (a file's audio start; 0 for a live stream).
+        causal: The low-latency mode: AudioAttNet reads no frame after the one it smooths (its
+            window is clamped there, as the offline render clamps it at a clip's last frame), so
+            a frame waits for its feature window only; the frames then differ from the offline
+            render's wherever the following frames would have changed the smoothing.
 
     Raises:
         RenderError: A run whose features cannot be computed as the audio arrives, no pose track,
@@ -64,6 +69,7 @@ class Streamer:
         roll: float = 0.0,
         blink: str = "auto",
         start: float = 0.0,
+        causal: bool = False,
     ) -> None:
         meta = run.meta
         if meta["feature_kind"] != "logmel":
@@ -90,7 +96,8 @@ class Streamer:
         self.camera, self.plate = frame_setup(run, plate)
         self.windows = StreamingWindows(self.fps, start=start, n_mels=int(meta["feature_dim"]))
         model = run.model
-        self._after = (model.config.att_len - model.config.att_len // 2 - 1) if model.smooths_audio else 0
+        self.causal = causal
+        self._after = (model.config.att_len - model.config.att_len // 2 - 1) if model.smooths_audio and not causal else 0
         self._before = model.config.att_len // 2 if model.smooths_audio else 0
         self._held = np.zeros((0, 16, int(meta["feature_dim"])), np.float32)  # windows of the frames not yet rendered, and their neighbours
         self._held_from = 0  # frame index of _held[0]
@@ -132,7 +139,7 @@ class Streamer:
     def _render(self, i: int, finished: bool) -> np.ndarray:
         model = self.run.model
         lo = max(0, i - self._before)
-        hi = self._n_windows if finished else i + self._after + 1
+        hi = i + 1 if self.causal else self._n_windows if finished else i + self._after + 1
         local = torch.as_tensor(self._held[lo - self._held_from : hi - self._held_from], device=self.plate.device)
         with torch.no_grad():
             code = model.frame_codes(local, [i - lo])[0]  # neighbours clamped at the clip's ends as offline
