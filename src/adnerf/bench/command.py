@@ -6,6 +6,7 @@ They live in this room because they call the benchmarks, which sit above the com
 from __future__ import annotations
 
 import argparse
+from typing import Callable
 
 import torch
 
@@ -36,6 +37,7 @@ __all__ = ["register"]
 
 JSON_LINES = "JSON lines on stdout, table on stderr"
 JSON_ROW = "one JSON line on stdout, the table on stderr"
+VIDEO = "the clip (one person, static camera, with audio)"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,6 +46,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     benches = with_formatter(bench.add_subparsers(dest="bench_command", required=True))
     for part in (_register_render, _register_fields, _register_real, _register_scale, _register_voices, _register_features):
         part(benches)
+
+
+def _output(rows: list[dict], table: str, args: argparse.Namespace, plot: Callable[[str], None]) -> int:
+    """A benchmark's rows and table (:func:`emit`), and its plot where ``--plot`` asks for one."""
+    emit(rows, table, args.json)
+    if args.plot:
+        plot(args.plot)
+        log(f"plot: {args.plot}")
+    return 0
 
 
 def _register_render(sub: argparse._SubParsersAction) -> None:
@@ -87,16 +98,12 @@ def _run_fields(args: argparse.Namespace) -> int:
         )  # fmt: skip
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    emit(rows, format_fields_table(rows), args.json)
-    if args.plot:
-        plot_fields(rows, args.plot)
-        log(f"plot: {args.plot}")
-    return 0
+    return _output(rows, format_fields_table(rows), args, lambda path: plot_fields(rows, path))
 
 
 def _register_real(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("real", help="a real clip: preprocess, train within a budget, render its held-out tail, measure (PSNR, SSIM, LMD, lip sync, LPIPS)")
-    p.add_argument("video", help="the clip (one person, static camera, with audio)")
+    p.add_argument("video", help=VIDEO)
     p.add_argument("--size", type=number(int, 0, 2048), default=256, help="longer side in pixels the clip is resized to first, 0 to keep it")
     p.add_argument("--minutes", type=number(float, 0.0, 10000.0, open_lo=True), default=10.0, help="training budget for both stages, minutes of training time")
     add_device(p)
@@ -147,16 +154,12 @@ def _run_real(args: argparse.Namespace) -> int:
         )  # fmt: skip
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    emit([row], _real_table(row), args.json)
-    if args.plot:
-        plot_mouth_opening(row, args.plot)
-        log(f"plot: {args.plot}")
-    return 0
+    return _output([row], _real_table(row), args, lambda path: plot_mouth_opening(row, path))
 
 
 def _register_scale(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("scale", help="a clip looped or cut to several lengths: preprocessing time per step and per frame, training speed and peak memory of each")
-    p.add_argument("video", help="the clip (one person, static camera, with audio)")
+    p.add_argument("video", help=VIDEO)
     p.add_argument("--seconds", type=positive_float_list, default=(10.0, 50.0, 300.0), help="comma-separated clip lengths in seconds, each made from the clip by looping it (frames and audio) or cutting it")
     p.add_argument("--size", type=number(int, 0, 2048), default=512, help="longer side in pixels the clip is resized to first, 0 to keep it")
     p.add_argument("--steps", type=number(int, 1), default=40, help="head iterations of each timed training run (the torso gets half)")
