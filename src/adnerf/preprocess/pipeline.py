@@ -278,7 +278,10 @@ class _Work:
             np.save(tmp, array)
 
     def load(self, name: str) -> np.ndarray:
-        return np.load(self.folder / f"{name}.npy")
+        """A step output, memory-mapped read-only: a long clip's frames and labels are paged in
+        from the work folder as a step reads them (and can be dropped again under memory
+        pressure) instead of being copied into the process's own memory by every step."""
+        return np.load(self.folder / f"{name}.npy", mmap_mode="r")
 
     def save_json(self, name: str, doc: dict) -> None:
         with atomic_path(self.folder / f"{name}.json") as tmp:
