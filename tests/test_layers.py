@@ -164,3 +164,48 @@ def test_runs_stored_before_the_layer_order_keep_the_torso_in_front() -> None:
     del stored["head_in_front"]  # run.json of a run trained before the option
     old = ModelConfig.from_dict(stored)
     assert old.head_in_front is False and list(TalkingHead(old).layers) == ["head", "torso"]
+
+
+def test_a_new_signal_is_one_registration_and_the_head_trains_on_it() -> None:
+    """A made-up ``brow`` signal (a value a frame carries, encoded to 3 inputs): registered once, a
+    head layer that lists it is built (its fields' input widened by 3), reads its code in every
+    sample, and two optimiser steps on a frame change the weights that read it and lower the loss.
+    Unregistered, a layer that names it is refused."""
+    from adnerf.model.conditions import SIGNALS, Signal, register_signal, signal_width
+    from adnerf.model.talking_head import _layer
+
+    model, cam, pose, plate = _scene()
+    cfg = model.config
+    with pytest.raises(KeyError, match="brow"):
+        signal_width("brow", cfg.audio_dim)
+    register_signal(Signal("brow", 3, lambda v: torch.cat([v, v * v, torch.sin(3 * v)], dim=-1)))
+    try:
+        conditions = (*cfg.head_conditions, "brow")
+        width = sum(signal_width(c, cfg.audio_dim) for c in conditions)
+        assert width == cfg.head.cond_dim + 3
+        head = _layer(cfg, "head", replace(cfg.head, cond_dim=width), replace(cfg.head_fine, cond_dim=width), cfg.head_aabb, cfg.head_samples, "canonical", conditions)
+        model.layers["head"] = head
+        brow = torch.tensor([0.4])
+        cond = FrameCondition(torch.zeros(cfg.audio_dim), pose, {"brow": brow})
+        assert torch.equal(cond.vector(conditions, torch.float32)[-3:], torch.cat([brow, brow * brow, torch.sin(3 * brow)]))
+        rays = cam.rays().flatten()
+        hit = head.crossing(rays, pose)
+        rays = rays[(hit[1] - hit[0]) > 0.05]  # the rays that cross the head's box
+        assert rays.origins.shape[0] > 20
+        target = torch.full((rays.origins.shape[0], 3), 0.8)
+
+        def loss() -> Tensor:
+            return ((head.render(rays, cond, background=torch.zeros_like(target)).final.rgb - target) ** 2).mean()
+
+        reads = [p for p in head.parameters() if p.ndim == 2 and p.shape[1] >= width]  # the first linear maps of the fields
+        before = [p.detach().clone() for p in reads]
+        opt = torch.optim.Adam(head.parameters(), lr=1e-2)
+        first = float(loss().detach())
+        for _ in range(2):
+            opt.zero_grad()
+            loss().backward()
+            opt.step()
+        assert reads and any(not torch.equal(p[:, -3:], b[:, -3:]) for p, b in zip(reads, before))  # the columns that read the brow moved
+        assert float(loss().detach()) < first
+    finally:
+        SIGNALS.pop("brow", None)

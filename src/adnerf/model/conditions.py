@@ -7,15 +7,17 @@ that order into the one conditioning vector its fields take. The head pose enter
 continuous code (:meth:`~adnerf.pose.HeadPose.code`), the eye openness as its code
 (:func:`eye_code`), every other signal as it is.
 
-Adding a condition is adding a signal here (or passing it in ``extra``) and naming it in the layers
-that read it; the renderer, the compositor and the training loop are not touched.
+Every signal but the audio code is a registered :class:`Signal` (its name, its width in a field's
+input and how a frame's value becomes that input): ``pose``, ``eye`` and ``mouth`` are registered
+here. Adding a condition is one :func:`register_signal` and naming it in the layers that read it
+(a frame then carries its value in ``extra``); the renderer and the compositor are not touched.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -23,17 +25,62 @@ from torch import Tensor
 from ..fields import POSE_CODE_DIM
 from ..pose import HeadPose
 
-__all__ = ["EYE_FREQUENCIES", "FrameCondition", "MOUTH_FREQUENCIES", "SIGNAL_WIDTHS", "eye_code", "mouth_code", "signal_width"]
+__all__ = ["EYE_FREQUENCIES", "FrameCondition", "MOUTH_FREQUENCIES", "SIGNALS", "SIGNAL_WIDTHS", "Signal", "eye_code", "mouth_code", "register_signal", "signal_width"]
 
 EYE_FREQUENCIES = 4
 MOUTH_FREQUENCIES = 3
 
+
+
+def _as_is(value: Tensor) -> Tensor:
+    return value
+
+
+@dataclass(frozen=True)
+class Signal:
+    """A condition a layer may read, besides the audio code.
+
+    Attributes:
+        name: The name layers list it by (and a frame's ``extra`` key).
+        width: Its width in a field's input.
+        encode: A frame's value ``(..., k)`` -> the field's input ``(..., width)``.
+    """
+
+    name: str
+    width: int
+    encode: Callable[[Tensor], Tensor] = _as_is
+
+
+SIGNALS: dict[str, Signal] = {}
+
+
+def register_signal(signal: Signal) -> Signal:
+    """Make ``signal`` known to layers and frames (a name registered again is replaced).
+
+    Raises:
+        ValueError: The name ``audio`` (the audio code is the model's own), or a width below 1.
+    """
+    if signal.name == "audio" or signal.width < 1:
+        raise ValueError(f"a signal needs a name other than 'audio' and a width >= 1; got {signal.name!r}, {signal.width}")
+    SIGNALS[signal.name] = signal
+    return signal
+
+
+class _Widths(Mapping[str, int]):
+    """The registered signals' widths by name, read from :data:`SIGNALS` as it is now."""
+
+    def __getitem__(self, name: str) -> int:
+        return SIGNALS[name].width
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(SIGNALS)
+
+    def __len__(self) -> int:
+        return len(SIGNALS)
+
+
 # Widths of the signals other than the audio code (whose width is the model's ``audio_dim``).
-SIGNAL_WIDTHS = {
-    "pose": POSE_CODE_DIM,  # the head pose's continuous code
-    "eye": 2 * EYE_FREQUENCIES,  # eye openness (a dataset's eye.npy), through eye_code
-    "mouth": 2 * 2 * MOUTH_FREQUENCIES,  # the mouth's opening and width (standardised), through mouth_code
-}
+SIGNAL_WIDTHS: Mapping[str, int] = _Widths()
 
 
 def eye_code(openness: Tensor) -> Tensor:
@@ -65,6 +112,11 @@ def mouth_code(mouth: Tensor) -> Tensor:
     k = torch.arange(1, MOUTH_FREQUENCIES + 1, dtype=mouth.dtype, device=mouth.device)
     angle = (math.pi / 8.0) * mouth[..., :, None] * k  # (..., 2, K)
     return torch.cat([torch.sin(angle), 1.0 - torch.cos(angle)], dim=-1).flatten(-2)
+
+
+register_signal(Signal("pose", POSE_CODE_DIM))  # the head pose's continuous code (HeadPose.code)
+register_signal(Signal("eye", 2 * EYE_FREQUENCIES, eye_code))  # eye openness (a dataset's eye track)
+register_signal(Signal("mouth", 2 * 2 * MOUTH_FREQUENCIES, mouth_code))  # the mouth's opening and width, standardised
 
 
 @dataclass
@@ -121,22 +173,20 @@ class FrameCondition:
         return FrameCondition(pick([c.audio for c in frames]), pose, {k: pick([c.extra[k] for c in frames]) for k in sorted(keys)})
 
     def signal(self, name: str) -> Tensor:
-        """One signal by name: ``"audio"``, ``"pose"`` (its 9-d code), ``"eye"`` (its code,
-        :func:`eye_code`), ``"mouth"`` (its code, :func:`mouth_code`) or another key of ``extra``.
+        """One signal by name, as a field reads it: ``"audio"``; ``"pose"`` (its 9-d code, or the
+        code in ``extra`` where the pose read differs from the pose that moves the head); a
+        registered signal in ``extra`` through its :attr:`Signal.encode` (``"eye"``:
+        :func:`eye_code`, ``"mouth"``: :func:`mouth_code`); any other key of ``extra`` as it is.
 
         Raises:
             KeyError: No such signal in this frame.
         """
         if name == "audio":
             return self.audio
-        if name == "pose":
-            return self.extra["pose"] if "pose" in self.extra else self.pose.code()
-        if name == "eye" and name in self.extra:
-            return eye_code(self.extra[name])
-        if name == "mouth" and name in self.extra:
-            return mouth_code(self.extra[name])
+        if name == "pose" and "pose" not in self.extra:
+            return self.pose.code()
         if name in self.extra:
-            return self.extra[name]
+            return SIGNALS[name].encode(self.extra[name]) if name in SIGNALS else self.extra[name]
         raise KeyError(f"this frame has no {name!r} signal (it has audio, pose{''.join(', ' + k for k in self.extra)})")
 
     def vector(self, names: Sequence[str], dtype: torch.dtype) -> Tensor | None:
@@ -155,6 +205,6 @@ def signal_width(name: str, audio_dim: int) -> int:
     """
     if name == "audio":
         return audio_dim
-    if name not in SIGNAL_WIDTHS:
-        raise KeyError(f"unknown condition signal {name!r}; known: audio, {', '.join(SIGNAL_WIDTHS)}")
-    return SIGNAL_WIDTHS[name]
+    if name not in SIGNALS:
+        raise KeyError(f"unknown condition signal {name!r}; known: audio, {', '.join(SIGNALS)} (register_signal adds one)")
+    return SIGNALS[name].width

@@ -47,7 +47,7 @@ from ..fields import (
 )
 from ..pose import HeadPose
 from ..rays import RayBundle
-from .conditions import SIGNAL_WIDTHS, FrameCondition, signal_width
+from .conditions import FrameCondition, signal_width
 from ..formats.dataset import SceneMeta
 from .layers import RadianceLayer
 from .mouth_target import MouthProbe
@@ -176,8 +176,8 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
     ``eye``: the head also reads the eye openness (for a dataset with ``eye.npy``).
     ``mouth``: the head also reads the mouth's opening and width (:attr:`ModelConfig.mouth_dim`).
     """
-    eye_dim = SIGNAL_WIDTHS["eye"] if eye else 0
-    mouth_dim = SIGNAL_WIDTHS["mouth"] if mouth else 0
+    eye_dim = signal_width("eye", 0) if eye else 0
+    mouth_dim = signal_width("mouth", 0) if mouth else 0
     head_cond = audio_dim + eye_dim + mouth_dim
     torso_cond = audio_dim + POSE_CODE_DIM
     if preset == "paper":
