@@ -97,6 +97,21 @@ def _nearer_clothes(lab: np.ndarray, clothes: np.ndarray, wall: np.ndarray) -> n
     return nearest(clothes) < nearest(wall)
 
 
+class _Band:
+    """The rows from ``top`` down of frames ``valid`` of a clip, a frame at a time (what
+    :func:`~.parsing.grabcut_clip` reads), without copying the clip's bands."""
+
+    def __init__(self, frames: np.ndarray, valid: np.ndarray, top: int) -> None:
+        self.frames, self.valid, self.top = frames, valid, top
+        self.shape = (len(valid), frames.shape[1] - top, *frames.shape[2:])
+
+    def __len__(self) -> int:
+        return len(self.valid)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        return np.ascontiguousarray(self.frames[self.valid[k], self.top :])
+
+
 def complete_torso(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, dict]:
     """Add the clothes a motion-based parse took for background to the torso layer.
 
@@ -126,9 +141,14 @@ def complete_torso(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray
     shoulders = valid[h - chin[valid, 1] >= SHOULDERS_BELOW_CHIN * width[valid]]
     report = {"frames": 0, "frames_changed": 0, "added_fraction": 0.0}
     top = int(np.clip(np.floor(np.min(chin[valid, 1] - BAND_ABOVE_CHIN * width[valid], initial=h)), 0, h - 1))
-    seeds = [clothes_seeds(labels[i], chin[i], float(width[i]), top) for i in valid]
+
+    def raw_seeds(k: int) -> np.ndarray:  # frame valid[k]'s seeds, made when needed: a clip's would be a byte a pixel
+        i = valid[k]
+        return clothes_seeds(labels[i], chin[i], float(width[i]), top)
+
     fit = np.searchsorted(valid, shoulders[np.linspace(0, len(shoulders) - 1, min(FIT_FRAMES, len(shoulders))).round().astype(int)]) if len(shoulders) else []
-    if len(fit) == 0 or not all((seeds[k] == cv2.GC_BGD).any() for k in fit):
+    fit_seeds = {k: raw_seeds(k) for k in fit}
+    if len(fit) == 0 or not all((fit_seeds[k] == cv2.GC_BGD).any() for k in fit):
         if progress is not None:
             progress(1, 1)
         return out, report
@@ -139,28 +159,29 @@ def complete_torso(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray
         return cv2.cvtColor(np.ascontiguousarray(frames[i, top:]), cv2.COLOR_RGB2LAB).astype(np.float32)
 
     fit_lab = {k: lab(valid[k]) for k in fit}
-    clothes = _centres(np.concatenate([fit_lab[k][seeds[k] == STRIP] for k in fit]))
-    wall = _centres(np.concatenate([fit_lab[k][seeds[k] == cv2.GC_BGD] for k in fit]))
+    clothes = _centres(np.concatenate([fit_lab[k][fit_seeds[k] == STRIP] for k in fit]))
+    wall = _centres(np.concatenate([fit_lab[k][fit_seeds[k] == cv2.GC_BGD] for k in fit]))
     rows = np.arange(h)[:, None] + 0.5
-    anchors = []
-    for k, i in enumerate(valid):
-        m = seeds[k]
+
+    def seeds(k: int) -> np.ndarray:  # GrabCut's seeds of frame valid[k] (called from worker threads)
+        i, m = valid[k], raw_seeds(k)
         like = _nearer_clothes(fit_lab[k] if k in fit_lab else lab(i), clothes, wall)
         m[(m == cv2.GC_BGD) & like] = cv2.GC_PR_BGD
         m[(m == cv2.GC_PR_BGD) & like & (rows[top:] > chin[i, 1])] = cv2.GC_PR_FGD
-        anchor = labels[i] > 0  # what the added pixels must join: the parsed person or the strip
-        anchor[top:] |= m == STRIP
-        anchors.append(anchor)
         m[m == STRIP] = cv2.GC_FGD
-    person = grabcut_clip(frames[valid, top:], seeds.__getitem__, fit, progress)
+        return m
+
+    person = grabcut_clip(_Band(frames, valid, top), seeds, fit, progress)
     added = []
     for k, i in enumerate(valid):
+        anchor = labels[i] > 0  # what the added pixels must join: the parsed person or the strip
+        anchor[top:] |= raw_seeds(k) == STRIP
         cut = np.zeros((h, w), bool)
         cut[top:] = person[k]
         below = rows > chin[i, 1]
-        grown = (cut & below) | anchors[k]
+        grown = (cut & below) | anchor
         _, comp = cv2.connectedComponents(grown.astype(np.uint8), connectivity=4)
-        joined = np.isin(comp, np.unique(comp[anchors[k]])) & (comp > 0)
+        joined = np.isin(comp, np.unique(comp[anchor])) & (comp > 0)
         new = _fill_holes(joined) & (labels[i] == 0) & below
         out[i][new] = LABEL_TORSO
         added.append(float(new.mean()))

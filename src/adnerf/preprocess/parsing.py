@@ -447,7 +447,7 @@ def grabcut_clip(frames: np.ndarray, seeds: Callable[[int], np.ndarray], stat: n
     frames of a clip are cut alike and fast.
 
     Args:
-        frames: ``(N, H, W, 3)`` uint8 RGB.
+        frames: ``(N, H, W, 3)`` uint8 RGB (or any sequence of such frames with a ``shape``).
         seeds: Frame index -> its seed mask ``(H, W)`` uint8 of OpenCV's GrabCut classes
             (``GC_BGD``, ``GC_FGD``, ``GC_PR_BGD``, ``GC_PR_FGD``); called once a frame (in worker
             threads, :func:`adnerf.threads.in_threads`), so a clip's seeds need not be held.
