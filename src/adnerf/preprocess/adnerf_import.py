@@ -159,6 +159,78 @@ def _scale_to_head_width(labels: np.ndarray, poses: np.ndarray, focal: float, he
 
 
 @writes_folder("out", "dataset")  # one writer per dataset folder
+def _frame_entries(src: Path, notes: list[str]) -> tuple[dict, dict[int, tuple[dict, str]], list[int]]:
+    """The transforms files' frames: ``(train doc, {img_id: (entry, split)}, sorted img_ids)``."""
+    train_doc = _read_json(src / "transforms_train.json")
+    val_path = src / "transforms_val.json"
+    val_doc = _read_json(val_path) if val_path.exists() else {"frames": []}
+    if not val_path.exists():
+        notes.append("no transforms_val.json: the test split is empty")
+    entries = [(f, "train") for f in train_doc["frames"]] + [(f, "test") for f in val_doc["frames"]]
+    seen: dict[int, tuple[dict, str]] = {}
+    for f, split in entries:
+        seen.setdefault(int(f["img_id"]), (f, split))
+    ids = sorted(seen)
+    if not ids:
+        raise PreprocessError(f"{src}: the transforms files list no frames")
+    gaps = int(np.sum(np.diff(ids) != 1))
+    if gaps:
+        notes.append(f"img_ids are not contiguous ({gaps} gaps): frames after a gap are shown earlier than in the original video, so the audio track drifts there")
+    return train_doc, seen, ids
+
+
+def _read_frames(src: Path, ids: list[int], notes: list[str], progress: Callable[[int, int], None] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(frames (N, H, W, 3), labels (N, H, W), background (H, W, 3))`` of the frames ``ids``."""
+    image_dir = src / "ori_imgs"
+    if not image_dir.is_dir():
+        image_dir = src / "com_imgs"
+        notes.append("no ori_imgs/: frames taken from com_imgs/ (background already replaced by bc.jpg)")
+    background = cv2.cvtColor(_read_image(src / "bc.jpg"), cv2.COLOR_BGR2RGB)
+    H, W = background.shape[:2]
+    n = len(ids)
+    frames = np.empty((n, H, W, 3), np.uint8)
+    labels = np.empty((n, H, W), np.uint8)
+    for k, img_id in enumerate(ids):
+        img = _read_image(image_dir / f"{img_id}.jpg")
+        par = _read_image(src / SOURCE_PARSING / f"{img_id}.png")
+        if img.shape[:2] != (H, W) or par.shape[:2] != (H, W):
+            raise PreprocessError(f"frame {img_id}: image {img.shape[:2]} or parsing {par.shape[:2]} does not match bc.jpg ({H}, {W})")
+        frames[k] = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        labels[k] = parse_adnerf_parsing(par)
+        if progress is not None:
+            progress(k + 1, n)
+    return frames, labels, background
+
+
+def _features_and_audio(src: Path, aud_ids: list[int], first_id: int, fps: float, audio: str | Path | None) -> tuple[np.ndarray, AudioTrack]:
+    """The frames' DeepSpeech windows (``aud.npy`` rows ``aud_ids``) and the audio from frame ``first_id`` on."""
+    try:
+        aud = load_npy_windows(src / "aud.npy")
+    except MediaError as exc:
+        raise PreprocessError(f"{exc} (AD-NeRF's DeepSpeech windows are (M, 16, 29))") from exc
+    if len(aud) < 1:
+        raise PreprocessError(f"{src / 'aud.npy'}: holds no windows")
+    features = aud[np.minimum(aud_ids, len(aud) - 1)].astype(np.float32)
+    audio_path = Path(audio) if audio is not None else src / "aud.wav"
+    try:
+        track = read_audio(audio_path, sample_rate=AUDIO_RATE)
+    except (MediaError, FileNotFoundError, OSError) as exc:
+        raise PreprocessError(f"{audio_path}: cannot read the audio ({exc}); give the original audio with --audio FILE") from exc
+    first = int(round(first_id / fps * AUDIO_RATE))
+    return features, AudioTrack(track.samples[first:], AUDIO_RATE, 0.0)
+
+
+def _bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, landmarks: np.ndarray | None) -> dict:
+    """The scene's boxes and near / far (:func:`scene_bounds`), the head box widened across and in
+    depth: AD-NeRF's head origin is the face model's, not the middle of the head."""
+    b = scene_bounds(labels, poses, K, head_width, None if landmarks is None else mouth_centres(landmarks), None if landmarks is None else eye_centres_px(landmarks))
+    (x0, y0, z0), (x1, y1, z1) = b["head_aabb"]
+    b["head_aabb"] = ((x0 - 0.15 * head_width, y0, z0 - 0.3 * head_width), (x1 + 0.15 * head_width, y1, z1 + 0.3 * head_width))
+    b["near"] = max(1e-3, b["near"] - 0.3 * head_width)
+    b["far"] += 0.3 * head_width
+    return b
+
+
 def import_adnerf(
     source: str | Path,
     out: str | Path,
@@ -193,98 +265,33 @@ def import_adnerf(
         raise PreprocessError("fps and head width must be positive finite numbers")
     inputs = [src] + ([Path(audio)] if audio is not None else [])
     check_folder_output(out, "dataset", inputs=inputs, overwrite=overwrite)
-    train_doc = _read_json(src / "transforms_train.json")
-    val_path = src / "transforms_val.json"
-    val_doc = _read_json(val_path) if val_path.exists() else {"frames": []}
     notes: list[str] = []
-    if not val_path.exists():
-        notes.append("no transforms_val.json: the test split is empty")
-    entries = [(f, "train") for f in train_doc["frames"]] + [(f, "test") for f in val_doc["frames"]]
-    seen: dict[int, tuple[dict, str]] = {}
-    for f, split in entries:
-        seen.setdefault(int(f["img_id"]), (f, split))
-    ids = sorted(seen)
-    if not ids:
-        raise PreprocessError(f"{src}: the transforms files list no frames")
-    gaps = int(np.sum(np.diff(ids) != 1))
-    if gaps:
-        notes.append(f"img_ids are not contiguous ({gaps} gaps): frames after a gap are shown earlier than in the original video, so the audio track drifts there")
-
-    image_dir = src / "ori_imgs"
-    if not image_dir.is_dir():
-        image_dir = src / "com_imgs"
-        notes.append("no ori_imgs/: frames taken from com_imgs/ (background already replaced by bc.jpg)")
-    background = cv2.cvtColor(_read_image(src / "bc.jpg"), cv2.COLOR_BGR2RGB)
-    H, W = background.shape[:2]
-    n = len(ids)
-    frames = np.empty((n, H, W, 3), np.uint8)
-    labels = np.empty((n, H, W), np.uint8)
-    for k, img_id in enumerate(ids):
-        img = _read_image(image_dir / f"{img_id}.jpg")
-        par = _read_image(src / SOURCE_PARSING / f"{img_id}.png")
-        if img.shape[:2] != (H, W) or par.shape[:2] != (H, W):
-            raise PreprocessError(f"frame {img_id}: image {img.shape[:2]} or parsing {par.shape[:2]} does not match bc.jpg ({H}, {W})")
-        frames[k] = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-        labels[k] = parse_adnerf_parsing(par)
-        if progress is not None:
-            progress(k + 1, n)
-
+    train_doc, seen, ids = _frame_entries(src, notes)
+    frames, labels, background = _read_frames(src, ids, notes, progress)
+    n, (H, W) = len(ids), background.shape[:2]
     landmarks = None
     lms_files = [src / "ori_imgs" / f"{img_id}.lms" for img_id in ids]
     if all(p.is_file() for p in lms_files):
         landmarks = np.stack([_read_landmarks(p) for p in lms_files])
     else:
         notes.append("no ori_imgs/<img_id>.lms landmarks for every frame: the mouth point is a fixed guess on the head")
-
-    try:
-        aud = load_npy_windows(src / "aud.npy")
-    except MediaError as exc:
-        raise PreprocessError(f"{exc} (AD-NeRF's DeepSpeech windows are (M, 16, 29))") from exc
-    if len(aud) < 1:
-        raise PreprocessError(f"{src / 'aud.npy'}: holds no windows")
-    aud_ids = [int(seen[i][0].get("aud_id", i)) for i in ids]
-    features = aud[np.minimum(aud_ids, len(aud) - 1)].astype(np.float32)
-
-    audio_path = Path(audio) if audio is not None else src / "aud.wav"
-    try:
-        track = read_audio(audio_path, sample_rate=AUDIO_RATE)
-    except (MediaError, FileNotFoundError, OSError) as exc:
-        raise PreprocessError(f"{audio_path}: cannot read the audio ({exc}); give the original audio with --audio FILE") from exc
-    first = int(round(ids[0] / fps * AUDIO_RATE))
-    track = AudioTrack(track.samples[first:], AUDIO_RATE, 0.0)
-
+    features, track = _features_and_audio(src, [int(seen[i][0].get("aud_id", i)) for i in ids], ids[0], fps, audio)
     focal = float(train_doc["focal_len"])
-    cx, cy = float(train_doc["cx"]) + 0.5, float(train_doc["cy"]) + 0.5
+    K = (focal, focal, float(train_doc["cx"]) + 0.5, float(train_doc["cy"]) + 0.5)
     poses = adnerf_pose_to_ours(np.stack([np.asarray(seen[i][0]["transform_matrix"], np.float64) for i in ids]))
     if not np.all(poses[:, 2, 3] > 0):
         raise PreprocessError(f"{src}: {int(np.sum(poses[:, 2, 3] <= 0))} poses put the head behind the camera; these are not AD-NeRF camera-to-head matrices")
     scale = _scale_to_head_width(labels, poses, focal, head_width)
     poses[:, :3, 3] *= scale
-    K = (focal, focal, cx, cy)
-    b = scene_bounds(labels, poses, K, head_width, None if landmarks is None else mouth_centres(landmarks), None if landmarks is None else eye_centres_px(landmarks))
-    # AD-NeRF's head origin is the face model's, not the middle of the head: widen the box across and in depth.
-    (x0, y0, z0), (x1, y1, z1) = b["head_aabb"]
-    b["head_aabb"] = ((x0 - 0.15 * head_width, y0, z0 - 0.3 * head_width), (x1 + 0.15 * head_width, y1, z1 + 0.3 * head_width))
-    b["near"] = max(1e-3, b["near"] - 0.3 * head_width)
-    b["far"] += 0.3 * head_width
+    b = _bounds(labels, poses, K, head_width, landmarks)
     train = [k for k, i in enumerate(ids) if seen[i][1] == "train"]
     test = [k for k, i in enumerate(ids) if seen[i][1] == "test"]
     meta = SceneMeta(
-        fps=float(fps),
-        width=W,
-        height=H,
-        intrinsics=K,
-        **b,
-        feature_kind=FEATURE_KIND,
-        feature_dim=int(features.shape[-1]),
-        n_frames=n,
-        train=train,
-        test=test,
-        source=f"imported from the AD-NeRF dataset {src.resolve()} (scale {scale:.6g})",
-    )
+        fps=float(fps), width=W, height=H, intrinsics=K, **b, feature_kind=FEATURE_KIND, feature_dim=int(features.shape[-1]), n_frames=n,
+        train=train, test=test, source=f"imported from the AD-NeRF dataset {src.resolve()} (scale {scale:.6g})",
+    )  # fmt: skip
     for note in notes:
         warnings.warn(note, stacklevel=2)
-
     eye = None if landmarks is None else eye_openness(landmarks)
     save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, eye=eye, landmarks=landmarks, overwrite=overwrite, inputs=inputs)
     return {
