@@ -30,6 +30,7 @@ against points seeded on an ellipsoid fitted to the head.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Callable
 
 import torch
@@ -174,6 +175,100 @@ def _retract(R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor) -> tuple[tor
     return E @ R, torch.einsum("nij,nj->ni", E, t) + delta[:, :3]
 
 
+def _checked_observations(R: torch.Tensor, t: torch.Tensor, points: torch.Tensor, uv: torch.Tensor, fixed_frame: int, point_weights: torch.Tensor | None) -> torch.Tensor:
+    """``(N, P)`` bool: which point each frame observes, once the inputs are checked (see
+    :func:`bundle_adjust`'s Raises)."""
+    n, p = uv.shape[:2]
+    if R.shape != (n, 3, 3) or t.shape != (n, 3) or points.shape != (p, 3):
+        raise ValueError(f"shapes disagree: R {tuple(R.shape)}, t {tuple(t.shape)}, points {tuple(points.shape)}, uv {tuple(uv.shape)}")
+    seen = torch.isfinite(uv[..., 0])
+    if not seen.any(0).all():
+        raise ValueError("every point needs at least one observation")
+    lonely = [i for i in range(n) if i != fixed_frame and int(seen[i].sum()) < 3]
+    if lonely:
+        raise ValueError(f"frames {lonely[:10]} have fewer than 3 observed points; their pose is not constrained")
+    if point_weights is not None and (point_weights.shape != (p,) or not bool((point_weights >= 0).all())):
+        raise ValueError(f"point_weights must be ({p},) and non-negative; got shape {tuple(point_weights.shape)}")
+    return seen
+
+
+def _shape_prior(X: torch.Tensor, radii: torch.Tensor | None, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ellipsoid shape prior's residuals ``(P,)`` and their Jacobians ``(P, 3)`` (zeros
+    without ``radii``)."""
+    p = X.shape[0]
+    if radii is None:
+        return torch.zeros(p, dtype=X.dtype, device=X.device), torch.zeros(p, 3, dtype=X.dtype, device=X.device)
+    q = X / radii
+    norm = q.norm(dim=-1)
+    jac = (q / radii) / norm.clamp_min(1e-12)[:, None] / sigma
+    return (norm - 1.0) / sigma, jac
+
+
+def _normal_equations(
+    R: torch.Tensor, t: torch.Tensor, points: torch.Tensor, r: torch.Tensor, w: torch.Tensor, frame: torch.Tensor, point: torch.Tensor,
+    keep: torch.Tensor, n: int, p: int, intrinsics: tuple[float, float, float, float], prior: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+) -> tuple[torch.Tensor, ...]:  # fmt: skip
+    """The weighted normal equations block by block: ``Hcc (N, 6, 6)``, ``Hpp (P, 3, 3)`` (with
+    the shape prior), gradients ``gc (N, 6)``, ``gp (P, 3)``, and ``W = Hcp`` as a 6 x 3 block per
+    observation of a free frame (``keep``)."""
+    jc, jp = residual_jacobians(R, t, points, frame, point, intrinsics)
+    wjc, wjp = w[:, None, None] * jc, w[:, None, None] * jp
+    Hcc = torch.zeros(n, 6, 6, dtype=R.dtype, device=R.device).index_add_(0, frame, wjc.transpose(1, 2) @ jc)
+    Hpp = torch.zeros(p, 3, 3, dtype=R.dtype, device=R.device).index_add_(0, point, wjp.transpose(1, 2) @ jp)
+    gc = torch.zeros(n, 6, dtype=R.dtype, device=R.device).index_add_(0, frame, torch.einsum("mki,mk->mi", wjc, r))
+    gp = torch.zeros(p, 3, dtype=R.dtype, device=R.device).index_add_(0, point, torch.einsum("mki,mk->mi", wjp, r))
+    pr, pj = prior(points)
+    Hpp = Hpp + pj[:, :, None] * pj[:, None, :]
+    gp = gp + pj * pr[:, None]
+    return Hcc, Hpp, gc, gp, (wjc.transpose(1, 2) @ jp)[keep]
+
+
+def _damped_step(
+    Hcc_f: torch.Tensor, Hpp: torch.Tensor, gc_f: torch.Tensor, gp: torch.Tensor, w_obs: torch.Tensor, lam: float,
+    kept_col: torch.Tensor, kept_point: torch.Tensor, groups: list,
+) -> tuple[torch.Tensor, torch.Tensor] | None:  # fmt: skip
+    """The Levenberg-Marquardt step ``(dc (6 nf,), dp (P, 3))`` at damping ``lam`` by the Schur
+    complement ``S = Hcc - W Hpp^-1 W^T`` (its ``(i, j)`` block sums ``W_o Hpp^-1 W_o'^T`` over
+    the pairs of observations of one point in frames ``i`` and ``j``); ``None`` when ``S`` is
+    not positive definite in floating point. ``S`` is symmetric positive definite in exact
+    arithmetic, so it is solved by Cholesky, at half the cost of LU."""
+    nf = Hcc_f.shape[0]
+    Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=-2, dim2=-1).clamp_min(1e-9))
+    Hpp_inv = torch.linalg.inv(Hpp_d)
+    wh = w_obs @ Hpp_inv[kept_point]
+    Hcc_d = Hcc_f + lam * torch.diag_embed(torch.diagonal(Hcc_f, dim1=-2, dim2=-1).clamp_min(1e-9))
+    S = torch.block_diag(*Hcc_d) - schur_blocks(wh, w_obs, kept_col, kept_point, groups, nf)
+    whg = torch.zeros(nf, 6, dtype=Hpp.dtype, device=Hpp.device).index_add_(0, kept_col, torch.einsum("okl,ol->ok", wh, gp[kept_point]))
+    rhs = -gc_f.reshape(-1) + whg.reshape(-1)
+    L, info = torch.linalg.cholesky_ex(S)
+    if int(info) != 0:
+        return None
+    dc = torch.cholesky_solve(rhs[:, None], L)[:, 0]
+    wdc = torch.zeros(Hpp.shape[0], 3, dtype=Hpp.dtype, device=Hpp.device).index_add_(0, kept_point, torch.einsum("okl,ok->ol", w_obs, dc.reshape(nf, 6)[kept_col]))
+    return dc, torch.einsum("pkl,pl->pk", Hpp_inv, -gp - wdc)
+
+
+def _free_layout(frame: torch.Tensor, point: torch.Tensor, n: int, p: int, fixed_frame: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, list]:
+    """Where the free frames' observations go in the Schur complement: ``free (N,)`` bool,
+    ``keep (M,)`` (the observations of free frames: the rows of ``W``), their block columns and
+    points, and the points grouped by the frames they are seen in (:func:`point_groups`)."""
+    free = torch.ones(n, dtype=torch.bool, device=frame.device)
+    free[fixed_frame] = False
+    col = torch.cumsum(free.long(), 0) - 1  # frame -> block column among free frames
+    keep = free[frame]
+    kept_col, kept_point = col[frame[keep]], point[keep]
+    return free, keep, kept_col, kept_point, point_groups(kept_col, kept_point, p)
+
+
+def _moved(R: torch.Tensor, t: torch.Tensor, points: torch.Tensor, step: tuple[torch.Tensor, torch.Tensor], free: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Poses and points moved by a step ``(dc, dp)`` (:func:`_damped_step`; the fixed frame stays)."""
+    dc, dp = step
+    delta = torch.zeros(R.shape[0], 6, dtype=R.dtype, device=R.device)
+    delta[free] = dc.reshape(-1, 6)
+    R_new, t_new = _retract(R, t, delta)
+    return R_new, t_new, points + dp
+
+
 def bundle_adjust(
     R: torch.Tensor,
     t: torch.Tensor,
@@ -220,35 +315,13 @@ def bundle_adjust(
             observation (nothing would constrain it).
     """
     n, p = uv.shape[:2]
-    if R.shape != (n, 3, 3) or t.shape != (n, 3) or points.shape != (p, 3):
-        raise ValueError(f"shapes disagree: R {tuple(R.shape)}, t {tuple(t.shape)}, points {tuple(points.shape)}, uv {tuple(uv.shape)}")
-    seen = torch.isfinite(uv[..., 0])
-    if not seen.any(0).all():
-        raise ValueError("every point needs at least one observation")
-    lonely = [i for i in range(n) if i != fixed_frame and int(seen[i].sum()) < 3]
-    if lonely:
-        raise ValueError(f"frames {lonely[:10]} have fewer than 3 observed points; their pose is not constrained")
-    if point_weights is not None and (point_weights.shape != (p,) or not bool((point_weights >= 0).all())):
-        raise ValueError(f"point_weights must be ({p},) and non-negative; got shape {tuple(point_weights.shape)}")
+    seen = _checked_observations(R, t, points, uv, fixed_frame, point_weights)
     frame, point = seen.nonzero(as_tuple=True)
     obs = uv[frame, point]
     ow = torch.ones(len(frame), dtype=uv.dtype, device=uv.device) if point_weights is None else point_weights.to(uv)[point]  # (M,) observation weights
-    free = torch.ones(n, dtype=torch.bool, device=uv.device)
-    free[fixed_frame] = False
-    col = torch.cumsum(free.long(), 0) - 1  # frame -> block column among free frames
-    nf = int(free.sum())
-    keep = free[frame]  # observations in the free frames: the rows of W
-    kept_col, kept_point = col[frame[keep]], point[keep]
-    groups = point_groups(kept_col, kept_point, p)
+    free, keep, kept_col, kept_point, groups = _free_layout(frame, point, n, p, fixed_frame)
 
-    def prior(X_: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Shape prior residuals ``(P,)`` and their Jacobians ``(P, 3)``."""
-        if shape_radii is None:
-            return torch.zeros(p, dtype=X_.dtype, device=X_.device), torch.zeros(p, 3, dtype=X_.dtype, device=X_.device)
-        q = X_ / shape_radii
-        norm = q.norm(dim=-1)
-        jac = (q / shape_radii) / norm.clamp_min(1e-12)[:, None] / shape_sigma
-        return (norm - 1.0) / shape_sigma, jac
+    prior = partial(_shape_prior, radii=shape_radii, sigma=shape_sigma)
 
     def cost_of(R_: torch.Tensor, t_: torch.Tensor, X_: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         r = reprojection_residuals(R_, t_, X_, frame, point, obs, intrinsics)
@@ -263,49 +336,18 @@ def bundle_adjust(
 
     cost, r = cost_of(R, t, points)
     rms_before = rms_of(r)
-    lam = 1e-3
-    it = 0
-    rel = 0.0
+    lam, it, rel = 1e-3, 0, 0.0
     for it in range(1, iterations + 1):
         e = r.norm(dim=-1)
         w = ow * torch.where(e <= huber, torch.ones_like(e), huber / e.clamp_min(huber))  # IRLS weights of the Huber loss
-        jc, jp = residual_jacobians(R, t, points, frame, point, intrinsics)
-        wjc, wjp = w[:, None, None] * jc, w[:, None, None] * jp
-        # Normal equations, block by block.
-        Hcc = torch.zeros(n, 6, 6, dtype=R.dtype, device=R.device).index_add_(0, frame, wjc.transpose(1, 2) @ jc)
-        Hpp = torch.zeros(p, 3, 3, dtype=R.dtype, device=R.device).index_add_(0, point, wjp.transpose(1, 2) @ jp)
-        gc = torch.zeros(n, 6, dtype=R.dtype, device=R.device).index_add_(0, frame, torch.einsum("mki,mk->mi", wjc, r))
-        gp = torch.zeros(p, 3, dtype=R.dtype, device=R.device).index_add_(0, point, torch.einsum("mki,mk->mi", wjp, r))
-        pr, pj = prior(points)
-        Hpp = Hpp + pj[:, :, None] * pj[:, None, :]
-        gp = gp + pj * pr[:, None]
-        # W = Hcp, a 6 x 3 block W_o per observation of a free frame; the Schur complement is
-        # S = Hcc - W Hpp^-1 W^T, whose (i, j) block sums W_o Hpp^-1 W_o'^T over the pairs of
-        # observations of one point in frames i and j.
-        w_obs = (wjc.transpose(1, 2) @ jp)[keep]
-        Hcc_f = Hcc[free]
+        Hcc, Hpp, gc, gp, w_obs = _normal_equations(R, t, points, r, w, frame, point, keep, n, p, intrinsics, prior)
         improved = False
         while lam < 1e10:
-            Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=-2, dim2=-1).clamp_min(1e-9))
-            Hpp_inv = torch.linalg.inv(Hpp_d)
-            wh = w_obs @ Hpp_inv[kept_point]
-            Hcc_d = Hcc_f + lam * torch.diag_embed(torch.diagonal(Hcc_f, dim1=-2, dim2=-1).clamp_min(1e-9))
-            S = torch.block_diag(*Hcc_d) - schur_blocks(wh, w_obs, kept_col, kept_point, groups, nf)
-            whg = torch.zeros(nf, 6, dtype=R.dtype, device=R.device).index_add_(0, kept_col, torch.einsum("okl,ol->ok", wh, gp[kept_point]))
-            rhs = -gc[free].reshape(-1) + whg.reshape(-1)
-            # S is symmetric positive definite (the damped normal equations' Schur complement):
-            # Cholesky, at half the cost of LU; where rounding makes it fail, damp more.
-            L, info = torch.linalg.cholesky_ex(S)
-            if int(info) != 0:
+            step = _damped_step(Hcc[free], Hpp, gc[free], gp, w_obs, lam, kept_col, kept_point, groups)
+            if step is None:  # rounding made the damped complement indefinite: damp more
                 lam *= 10.0
                 continue
-            dc = torch.cholesky_solve(rhs[:, None], L)[:, 0]
-            wdc = torch.zeros(p, 3, dtype=R.dtype, device=R.device).index_add_(0, kept_point, torch.einsum("okl,ok->ol", w_obs, dc.reshape(nf, 6)[kept_col]))
-            dp = torch.einsum("pkl,pl->pk", Hpp_inv, -gp - wdc)
-            delta = torch.zeros(n, 6, dtype=R.dtype, device=R.device)
-            delta[free] = dc.reshape(nf, 6)
-            R_new, t_new = _retract(R, t, delta)
-            X_new = points + dp
+            R_new, t_new, X_new = _moved(R, t, points, step, free)
             depth = torch.einsum("mij,mj->mi", R_new[frame], X_new[point])[:, 2] + t_new[frame, 2]
             if bool((depth > 0).all()):
                 new_cost, new_r = cost_of(R_new, t_new, X_new)

@@ -238,6 +238,109 @@ def _pnp(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndar
     return cv2.Rodrigues(rvec)[0], tvec[:, 0]
 
 
+def _first_guess(
+    uv: np.ndarray, obs: np.ndarray, R: np.ndarray, t: np.ndarray, radii: np.ndarray, reference: int,
+    intrinsics: tuple[float, float, float, float], initial: HeadTrack | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The adjustment's start: poses ``R (N, 3, 3)``, ``t (N, 3)`` and canonical points ``(P, 3)``.
+
+    From ``initial``'s adjusted poses and points (tracks it could not place seeded under them),
+    or else a chain from the reference frame outwards: each frame's pose by perspective-n-point
+    from the points already placed, and its new tracks placed on the ellipsoid ``radii``.
+    """
+    fx, fy, cx, cy = intrinsics
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
+    n = len(uv)
+    points = np.full((uv.shape[1], 3), np.nan)
+
+    def seed(i: int) -> None:
+        new = obs[i] & ~np.isfinite(points[:, 0])
+        if new.any():
+            got = ellipsoid_points(
+                torch.from_numpy(uv[i, new]),
+                torch.from_numpy(R[i]).expand(int(new.sum()), 3, 3),
+                torch.from_numpy(t[i]).expand(int(new.sum()), 3),
+                torch.from_numpy(radii),
+                intrinsics,
+            )
+            points[new] = got.numpy()
+
+    order = list(range(reference, n)) + list(range(reference - 1, -1, -1))
+    if initial is not None:
+        R0, t0, X0 = initial.adjusted  # type: ignore[misc]
+        R, t = R0.copy(), t0.copy()
+        m = min(len(X0), len(points))
+        points[:m] = X0[:m]
+        for i in order:
+            seed(i)
+        return R, t, points
+    seed(reference)
+    for k, i in enumerate(order[1:], 1):
+        prev = order[k - 1]
+        known = obs[i] & np.isfinite(points[:, 0])
+        R[i], t[i] = R[prev], t[prev]
+        if known.sum() >= 6:
+            got = _pnp(points[known], uv[i, known], K, R[prev], t[prev])
+            if got is not None:
+                R[i], t[i] = got
+        seed(i)
+    return R, t, points
+
+
+def _landmark_rms(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray, good: np.ndarray, intrinsics: tuple[float, float, float, float]) -> float:
+    """RMS reprojection error (pixels) of the landmarks ``uv (N, L, 2)`` at their adjusted points
+    ``X (L, 3)`` in the adjusted frames ``good``; NaN without landmarks."""
+    if uv.shape[1] == 0:
+        return float("nan")
+    cam = np.einsum("nij,pj->npi", R, X) + t[:, None]
+    err = np.linalg.norm(project_points(cam, intrinsics) - uv, axis=-1)[good]
+    err = err[np.isfinite(err)]  # frames without the landmark, and landmarks never seen
+    return float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
+
+
+def _reference_head(box: np.ndarray, reference: int, intrinsics: tuple[float, float, float, float], head_width: float) -> tuple[np.ndarray, np.ndarray]:
+    """The head in the reference frame from its box ``(x0, y0, x1, y1)``: its position ``(3,)``
+    (``head_width`` across the box fixes the depth) and the ellipsoid's radii ``(3,)``.
+
+    Raises:
+        ValueError: The reference frame shows no head.
+    """
+    if not np.all(np.isfinite(box)):
+        raise ValueError(f"frame {reference} shows no head; cannot anchor the head pose")
+    fx, fy, cx, cy = intrinsics
+    x0, y0, x1, y1 = box
+    z0 = fx * head_width / (x1 - x0)
+    height = (y1 - y0) * z0 / fy
+    position = np.array([(0.5 * (x0 + x1) - cx) / fx * z0, (0.5 * (y0 + y1) - cy) / fy * z0, z0])
+    return position, np.array([head_width / 2, height / 2, 0.55 * head_width])
+
+
+def _gauged(R: np.ndarray, t: np.ndarray, smooth_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Poses ``(N, 4, 4)`` from ``R``, ``t`` smoothed over ``smooth_sigma`` frames, in the gauge
+    whose canonical axes are the mean head orientation ``M`` (returned): ``R_i <- R_i M^T`` and
+    ``x <- M x`` leave every camera point ``R_i x + t_i`` unchanged and make the chordal mean of
+    the ``R_i`` the identity."""
+    poses = np.tile(np.eye(4), (len(R), 1, 1))
+    poses[:, :3, :3] = R
+    poses[:, :3, 3] = t
+    poses = smooth_poses(poses, smooth_sigma)
+    M = mean_rotation(poses[:, :3, :3])
+    poses[:, :3, :3] = poses[:, :3, :3] @ M.T
+    return poses, M
+
+
+def _with_landmarks(uv: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """The tracks ``(N, P, 2)`` followed by the landmarks ``(N, L, 2)`` as more tracks (a landmark
+    with a NaN coordinate not observed in that frame).
+
+    Raises:
+        ValueError: Landmarks of another number of frames or not 2-d.
+    """
+    if landmarks.shape[0] != len(uv) or landmarks.shape[-1] != 2:
+        raise ValueError(f"landmarks must be ({len(uv)}, L, 2); got {landmarks.shape}")
+    return np.concatenate([uv, np.where(np.isfinite(landmarks).all(-1, keepdims=True), landmarks, np.nan)], axis=1)
+
+
 def estimate_head_poses(
     tracks: Tracks,
     labels: np.ndarray,
@@ -284,65 +387,23 @@ def estimate_head_poses(
     Raises:
         ValueError: The reference frame shows no head, or a frame has too few tracked points.
     """
-    fx, fy, cx, cy = intrinsics
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
     n = len(labels)
-    boxes = head_boxes(labels)
     warm = initial is not None and initial.adjusted is not None and len(initial.adjusted[0]) == n
     if warm:
         reference = initial.reference  # type: ignore[union-attr]
     if reference < 0:  # the first frame with enough tracked points
         counts = tracks.observed.sum(1)
         reference = int(np.argmax(counts >= 6)) if (counts >= 6).any() else int(np.argmax(counts))
-    if not np.all(np.isfinite(boxes[reference])):
-        raise ValueError(f"frame {reference} shows no head; cannot anchor the head pose")
-    x0, y0, x1, y1 = boxes[reference]
-    z0 = fx * head_width / (x1 - x0)
-    height = (y1 - y0) * z0 / fy
-    radii = initial.radii.copy() if warm else np.array([head_width / 2, height / 2, 0.55 * head_width])  # type: ignore[union-attr]
+    t_reference, radii = _reference_head(head_boxes(labels)[reference], reference, intrinsics, head_width)
+    if warm:
+        radii = initial.radii.copy()  # type: ignore[union-attr]
     R = np.tile(np.eye(3), (n, 1, 1))
     t = np.zeros((n, 3))
-    t[reference] = ((0.5 * (x0 + x1) - cx) / fx * z0, (0.5 * (y0 + y1) - cy) / fy * z0, z0)
-    uv = tracks.uv
-    n_tracks = uv.shape[1]
-    if landmarks is not None and landmark_weight > 0:
-        if landmarks.shape[0] != n or landmarks.shape[-1] != 2:
-            raise ValueError(f"landmarks must be ({n}, L, 2); got {landmarks.shape}")
-        uv = np.concatenate([uv, np.where(np.isfinite(landmarks).all(-1, keepdims=True), landmarks, np.nan)], axis=1)
+    t[reference] = t_reference
+    n_tracks = tracks.uv.shape[1]
+    uv = tracks.uv if landmarks is None or landmark_weight <= 0 else _with_landmarks(tracks.uv, landmarks)
     obs = np.isfinite(uv[..., 0])
-    points = np.full((uv.shape[1], 3), np.nan)
-
-    def seed(i: int) -> None:
-        new = obs[i] & ~np.isfinite(points[:, 0])
-        if new.any():
-            got = ellipsoid_points(
-                torch.from_numpy(uv[i, new]),
-                torch.from_numpy(R[i]).expand(int(new.sum()), 3, 3),
-                torch.from_numpy(t[i]).expand(int(new.sum()), 3),
-                torch.from_numpy(radii),
-                intrinsics,
-            )
-            points[new] = got.numpy()
-
-    order = list(range(reference, n)) + list(range(reference - 1, -1, -1))
-    if warm:  # the earlier adjustment's poses and points; tracks it could not place seeded under them
-        R0, t0, X0 = initial.adjusted  # type: ignore[union-attr, misc]
-        R, t = R0.copy(), t0.copy()
-        m = min(len(X0), len(points))
-        points[:m] = X0[:m]
-        for i in order:
-            seed(i)
-    else:
-        seed(reference)
-    for k, i in enumerate([] if warm else order[1:], 1):
-        prev = order[k - 1]
-        known = obs[i] & np.isfinite(points[:, 0])
-        R[i], t[i] = R[prev], t[prev]
-        if known.sum() >= 6:
-            got = _pnp(points[known], uv[i, known], K, R[prev], t[prev])
-            if got is not None:
-                R[i], t[i] = got
-        seed(i)
+    R, t, points = _first_guess(uv, obs, R, t, radii, reference, intrinsics, initial if warm else None)
     # Frames with fewer than 3 tracked points are left out of the adjustment and interpolated.
     good = obs.sum(1) >= 3
     good[reference] = True
@@ -368,21 +429,9 @@ def estimate_head_poses(
         Rb, tb = _interpolate_poses(Rb, tb, good)
     Xb = result.points.numpy()
     X_all = _scatter(seen_points, Xb)
-    landmark_rms = float("nan")
-    if uv.shape[1] > n_tracks:
-        cam = np.einsum("nij,pj->npi", Rb, X_all[n_tracks:]) + tb[:, None]
-        err = np.linalg.norm(project_points(cam, intrinsics) - uv[:, n_tracks:], axis=-1)[good]
-        err = err[np.isfinite(err)]  # frames without the landmark, and landmarks never seen
-        landmark_rms = float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
+    landmark_rms = _landmark_rms(Rb, tb, X_all[n_tracks:], uv[:, n_tracks:], good, intrinsics)
     adjusted = (Rb.copy(), tb.copy(), X_all.copy())
-    poses = np.tile(np.eye(4), (n, 1, 1))
-    poses[:, :3, :3] = Rb
-    poses[:, :3, 3] = tb
-    poses = smooth_poses(poses, smooth_sigma)
-    # Gauge: canonical axes = the mean head orientation M. R_i <- R_i M^T and x <- M x leave every
-    # camera point R_i x + t_i unchanged and make the chordal mean of the R_i the identity.
-    M = mean_rotation(poses[:, :3, :3])
-    poses[:, :3, :3] = poses[:, :3, :3] @ M.T
+    poses, M = _gauged(Rb, tb, smooth_sigma)
     return HeadTrack(
         poses=poses,
         points=X_all[:n_tracks] @ M.T,
