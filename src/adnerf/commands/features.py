@@ -12,7 +12,7 @@ from tqdm import tqdm
 from ..audio.features import MODEL_RATE, FeatureError, FeatureSpec, save_npy_atomic, speech_windows
 from ..formats.outputs import check_file_output
 from ..io import AudioTrack, MediaError, audio_span, frame_times, probe, read_audio
-from .options import CliError, number, positive
+from .options import CliError, add_overwrite, number, positive
 
 __all__ = ["register", "run"]
 
@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fps", type=positive, default=None, help="frame rate (> 0) for audio-only input (default 25); overrides a video's timestamps")
     p.add_argument("--start", type=number(float, 0.0), default=0.0, help="seconds from the first frame (or the audio's start) to begin at, as preprocess --start: earlier frames and sound are left out")
     p.add_argument("--end", type=number(float, 0.0, open_lo=True), default=None, help="seconds from the first frame to stop at (frames and sound from then on are left out)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output file (never an input)")
+    add_overwrite(p, "replace an existing output file (never an input)")
     p.set_defaults(func=run)
 
 

@@ -10,7 +10,7 @@ from tqdm import tqdm
 
 from ..lock import FolderLock
 from ..preprocess.adnerf_import import import_adnerf
-from .options import positive
+from .options import add_overwrite, positive
 
 __all__ = ["register", "run"]
 
@@ -21,7 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="dataset folder to create")
     p.add_argument("--fps", type=positive, default=25.0, help="frame rate of the original video (> 0; AD-NeRF assumes 25)")
     p.add_argument("--audio", default=None, help="the original audio (default SOURCE/aud.wav)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the source)")
+    add_overwrite(p, "replace an existing adnerf dataset folder (never another folder, nor one holding the source)")
     p.set_defaults(func=run)
 
 

@@ -7,7 +7,7 @@ import json
 
 from ..formats.dataset import DatasetFolder
 from ..preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
-from .options import number, positive
+from .options import add_overwrite, number, positive
 
 __all__ = ["register", "run"]
 
@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--crop", default="auto", help="the part of the frame the dataset shows: auto (a fixed square around the face's range over the clip, with the shoulders; a frame already within --size is used whole), none (the whole frame) or X,Y,W,H in the video's pixels")
     p.add_argument("--size", type=number(int, 0, 4096), default=512, help="longest side of the dataset's frames in pixels: the crop is scaled down to it, never up; 0 keeps the crop's size")
     p.add_argument("--allow-cuts", action="store_true", help="keep a clip whose picture jumps (shot cuts, reframings); by default it is refused with the longest clean stretch named")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder, nor one holding the video)")
+    add_overwrite(p, "replace an existing adnerf dataset folder (never another folder, nor one holding the video)")
     p.set_defaults(func=run)
 
 

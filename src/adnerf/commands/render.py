@@ -7,7 +7,7 @@ import argparse
 from tqdm import tqdm
 
 from ..model.run_folder import load_run
-from .options import CliError, add_device, angle, checked_device
+from .options import CliError, add_device, add_overwrite, angle, checked_device
 from .render_video import check_render_outputs, render_audio_video
 
 __all__ = ["register", "run"]
@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--paste-back", action=argparse.BooleanOptionalAction, default=None, help="paste the render back into the source video's full frames, at its size (default: when the dataset was cropped from a larger video and that video is at hand; --no-paste-back writes the square)")
     p.add_argument("--source", default=None, metavar="VIDEO", help="with paste-back: the video the dataset was made from, when it has moved since preprocessing")
     p.add_argument("--frame", dest="still_frame", default=None, metavar="IMAGE", help="with paste-back: paste every rendered square into this full-size image instead of the source video's frames")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output .mp4 and existing frame PNGs (never an input)")
+    add_overwrite(p, "replace an existing output .mp4 and existing frame PNGs (never an input)")
     add_device(p)
     p.add_argument("-o", "--output", required=True, help="output .mp4")
     p.set_defaults(func=run)

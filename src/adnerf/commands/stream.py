@@ -8,7 +8,7 @@ import json
 from tqdm import tqdm
 
 from ..model.run_folder import load_run
-from .options import CliError, add_device, add_json, checked_device, number
+from .options import CliError, add_device, add_json, add_overwrite, checked_device, number
 from .render_video import check_render_outputs
 from .stream_video import stream_to_video
 
@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--causal", action="store_true", help="lower latency: AudioAttNet smooths each frame's audio code over that frame and the ones before it only (its window clamped there), so a frame waits for its feature window alone")
     p.add_argument("--background", default=None, help="replacement background image")
     p.add_argument("--frames", default=None, help="also write the frames as PNGs into this folder as they come")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output .mp4 and frame PNGs")
+    add_overwrite(p, "replace an existing output .mp4 and frame PNGs")
     add_device(p)
     add_json(p, "print the summary (frames, look-ahead, first-frame latency, real-time factor) as one JSON object")
     p.add_argument("-o", "--output", required=True, help="output .mp4")

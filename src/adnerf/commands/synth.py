@@ -10,7 +10,7 @@ from ..audio.espeak import EspeakError, check_voice
 from ..formats.outputs import check_folder_output
 from ..lock import FolderLock
 from ..synth import SynthConfig, espeak_available, synthesize
-from .options import CliError, number
+from .options import CliError, add_overwrite, number
 
 __all__ = ["register", "run"]
 
@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--wpm", type=number(int, 80, 450), default=150, help="speaking rate of the espeak-ng speech, 80 to 450 words per minute")
     p.add_argument("--mouth", choices=("auto", "visemes", "loudness"), default="auto", help="what opens the jaw: the phonemes spoken (visemes; needs espeak-ng) or the voice's loudness (auto: visemes with espeak-ng)")
     p.add_argument("--features", choices=("logmel", "phonemes"), default="logmel", help="audio features stored with the dataset")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing adnerf dataset folder (never another folder)")
+    add_overwrite(p, "replace an existing adnerf dataset folder (never another folder)")
     p.set_defaults(func=run)
 
 

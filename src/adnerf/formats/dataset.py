@@ -51,10 +51,13 @@ import torch
 from ..cameras import Camera, intrinsics_matrix
 from ..io import AudioTrack, MediaError, read_audio
 from ..memory import require
-from .outputs import check_folder_output
 from ..pose import HeadPose
+from .outputs import check_folder_output
 
-__all__ = ["FORMAT", "VERSION", "DatasetError", "DatasetFolder", "LABEL_BACKGROUND", "LABEL_HEAD", "LABEL_TORSO", "frame_bytes", "read_meta", "tail_split", "write_wav", "check_poses", "SceneMeta", "Truth", "TalkingHeadDataset", "load_dataset", "save_dataset"]
+__all__ = [
+    "EYE_CROP", "FORMAT", "LABEL_BACKGROUND", "LABEL_HEAD", "LABEL_TORSO", "MOUTH_CROP", "TRUTH_FILES", "VERSION", "DatasetError", "DatasetFolder",
+    "SceneMeta", "TalkingHeadDataset", "Truth", "check_poses", "frame_bytes", "load_dataset", "meta_from_dict", "read_meta", "save_dataset", "tail_split", "write_wav",
+]  # fmt: skip
 
 FORMAT = "adnerf-dataset"
 VERSION = 1

@@ -332,6 +332,7 @@ class Trainer:
 
     def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool, ranks: Ranks = Ranks(), plan: "MouthPlan | None" = None) -> None:
         self.root, self.ds, self.tcfg, self.device, self.ranks = root, ds, tcfg, device, ranks
+        self.files = RunFolder(root)  # where the checkpoint and the log go
         self.progress = progress and ranks.main
         torch.manual_seed(tcfg.seed)
         self.model = TalkingHead(mcfg).to(device)
@@ -444,12 +445,12 @@ class Trainer:
         }
         if self.mouth_probe is not None:
             state["mouth_probe"] = {"model": self.mouth_probe.state_dict(), "opt": self.opt_probe.state_dict()}
-        save_atomic(state, RunFolder(self.root).checkpoint)
+        save_atomic(state, self.files.checkpoint)
 
     def load(self, ckpt: dict) -> None:
         """Continue from checkpoint content (see :func:`read_checkpoint`); the log keeps only the
         lines of the steps the checkpoint holds, so a resumed run logs each step once."""
-        load_model_state(self.model, ckpt["model"], RunFolder(self.root).checkpoint, scheduled_smoothing(self.tcfg, ckpt["head_step"]))
+        load_model_state(self.model, ckpt["model"], self.files.checkpoint, scheduled_smoothing(self.tcfg, ckpt["head_step"]))
         self.opt_head.load_state_dict(ckpt["opt_head"])
         self.opt_torso.load_state_dict(ckpt["opt_torso"])
         self.generator.set_state(ckpt["generator"].cpu())  # loaded with map_location=device
@@ -457,7 +458,7 @@ class Trainer:
         if self.mouth_probe is not None and "mouth_probe" in ckpt:
             self.mouth_probe.load_state_dict(ckpt["mouth_probe"]["model"])
             self.opt_probe.load_state_dict(ckpt["mouth_probe"]["opt"])
-        log = RunFolder(self.root).log
+        log = self.files.log
         if log.exists() and self.ranks.main:
             done = {"head": self.head_step, "torso": self.torso_step}
             rows = [line for line in log.read_text().splitlines() if line.strip()]
@@ -476,7 +477,7 @@ class Trainer:
     def log(self, row: dict) -> None:
         if not self.ranks.main:
             return
-        with open(RunFolder(self.root).log, "a") as f:
+        with open(self.files.log, "a") as f:
             f.write(json.dumps(row) + "\n")
 
     # ---- sampling

@@ -381,8 +381,10 @@ class ClassicalParser:
         sub = np.union1d(stat, np.linspace(0, n - 1, min(n, self.plate_frames)).round().astype(int))
         total = len(sub) + n
         first = self._first_seeds(hull, moving)
-        first_pass = grabcut_clip(frames[sub] if len(sub) < n else frames, lambda i: first, np.searchsorted(sub, stat), progress, 0, total)
-        plate, seen = self._plate(frames[sub] if len(sub) < n else frames, first_pass)
+        sub_frames = frames[sub] if len(sub) < n else frames  # one copy of the sampled frames, for the cuts and the plate
+        first_pass = grabcut_clip(sub_frames, lambda i: first, np.searchsorted(sub, stat), progress, 0, total)
+        plate, seen = self._plate(sub_frames, first_pass)
+        del sub_frames
         plate_lab = _lab(plate[None])[0]
         in_sub = np.full(n, -1)
         in_sub[sub] = np.arange(len(sub))

@@ -219,8 +219,6 @@ class PreprocessConfig:
             raise PreprocessError(f"--test-fraction must lie in (0, 0.5); got {self.test_fraction}")
 
 
-
-
 def code_fingerprint() -> str:
     """A hash of adnerf's own source files: the code that makes a step's outputs.
 
@@ -517,7 +515,6 @@ def _step_parse(ctx: StepContext) -> dict:
     from .parsers import make_parser
 
     video, work, config, bar = ctx
-
     frames = work.load("frames")
     try:
         parser = make_parser(config.parser)
@@ -573,7 +570,6 @@ def _step_face(ctx: StepContext) -> dict:
     from .landmarks import make_face_detector, track_faces
 
     video, work, config, bar = ctx
-
     try:
         detector = make_face_detector(config.face)
     except (ValueError, ImportError) as exc:
@@ -692,7 +688,6 @@ def _step_pose(ctx: StepContext) -> dict:
     from .headpose import chain_segments, smooth_poses
 
     _, work, config, bar = ctx
-
     # The parser's labels: the pose needs the rigid upper head (its box seeds the ellipsoid), not
     # the jaw-line layers, which reach down the jaw that moves with the speech.
     frames, labels = work.load("frames"), work.load("parsing")
@@ -733,7 +728,6 @@ def _step_plate(ctx: StepContext) -> dict:
     from .plate import background_plate
 
     _, work, _, bar = ctx
-
     plate = background_plate(work.load("frames"), _labels(work))
     with atomic_path(work.plate) as tmp:
         cv2.imwrite(str(tmp), cv2.cvtColor(plate.image, cv2.COLOR_RGB2BGR))
@@ -906,7 +900,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         **{f"pose_{k}": v for k, v in docs["pose"].items()},
         "plate_filled_fraction": docs["plate"]["filled_fraction"],
         "bounds": b,
-        "timings_s": {s: work.record.get(s, {}).get("seconds") for s in STEPS if s != "write"},
+        "timings_s": {step.name: work.record.get(step.name, {}).get("seconds") for step in PIPELINE},
     }
     _layer_checks(report, labels, landmarks, config)
     sheet = _contact_sheet(frames, labels, poses, K, config.head_width, landmarks)

@@ -68,11 +68,11 @@ def median_plate(frames: np.ndarray, person: np.ndarray, margin: int = 2, rows_p
         # Frames last, so each column's partition runs over contiguous memory (torch's permute
         # copies a strided block several times faster than numpy's).
         block = torch.from_numpy(frames[:, rows]).permute(1, 2, 3, 0).to(torch.int16).contiguous().numpy()  # (r, W, 3, N)
-        out = torch.from_numpy(person[:, rows]).permute(1, 2, 0).contiguous().numpy()  # (r, W, N)
+        hidden = torch.from_numpy(person[:, rows]).permute(1, 2, 0).contiguous().numpy()  # (r, W, N)
         c = count[rows]
         below = (n - c) // 2
-        fill = np.where(np.cumsum(out, axis=-1, dtype=np.int32) <= below[..., None], np.int16(-1), np.int16(256))
-        block = np.where(out[:, :, None], fill[:, :, None], block)
+        fill = np.where(np.cumsum(hidden, axis=-1, dtype=np.int32) <= below[..., None], np.int16(-1), np.int16(256))
+        block = np.where(hidden[:, :, None], fill[:, :, None], block)
         block.partition(ranks, axis=-1)
         middle = [np.take_along_axis(block, np.broadcast_to(k[..., None, None], block.shape[:3] + (1,)), -1)[..., 0] for k in (below + (c - 1) // 2, below + c // 2)]
         med = (middle[0].astype(np.float32) + middle[1]) / 2
