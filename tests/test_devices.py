@@ -84,7 +84,7 @@ def test_training_resumes_on_the_device_and_runs_render_across_devices(tiny: Pat
     train(tiny, root, config=replace(CFG, frames=frames), device=dev, progress=False, max_steps=6)
     train(tiny, root, device=dev, progress=False, resume=True)
     ckpt = torch.load(root / "checkpoint.pt", map_location="cpu", weights_only=False)
-    assert (ckpt["head_step"], ckpt["torso_step"]) == (8, 4)
+    assert (ckpt["stages"]["head"]["step"], ckpt["stages"]["torso"]["step"]) == (8, 4)
     ds = load_dataset(tiny)
     idx = list(ds.meta.test)
     plate = ds.background.astype(np.float32) / 255.0

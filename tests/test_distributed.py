@@ -46,7 +46,7 @@ def test_two_processes_train_what_one_process_trains(tmp_path: Path) -> None:
 
     a = torch.load(one / "checkpoint.pt", weights_only=False)
     b = torch.load(two / "checkpoint.pt", weights_only=False)
-    assert (a["head_step"], a["torso_step"]) == (b["head_step"], b["torso_step"]) == (6, 4)
+    assert (a["stages"]["head"]["step"], a["stages"]["torso"]["step"]) == (b["stages"]["head"]["step"], b["stages"]["torso"]["step"]) == (6, 4)
     # The same training, step by step: every logged loss agrees to float32 rounding ...
     logs = [[json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()] for run in (one, two)]
     assert [(r["stage"], r["step"]) for r in logs[0]] == [(r["stage"], r["step"]) for r in logs[1]]

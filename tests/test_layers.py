@@ -172,7 +172,7 @@ def test_a_new_signal_is_one_registration_and_the_head_trains_on_it() -> None:
     sample, and two optimiser steps on a frame change the weights that read it and lower the loss.
     Unregistered, a layer that names it is refused."""
     from adnerf.model.conditions import SIGNALS, Signal, register_signal, signal_width
-    from adnerf.model.talking_head import _layer
+    from adnerf.model.talking_head import LayerConfig, _layer
 
     model, cam, pose, plate = _scene()
     cfg = model.config
@@ -183,7 +183,7 @@ def test_a_new_signal_is_one_registration_and_the_head_trains_on_it() -> None:
         conditions = (*cfg.head_conditions, "brow")
         width = sum(signal_width(c, cfg.audio_dim) for c in conditions)
         assert width == cfg.head.cond_dim + 3
-        head = _layer(cfg, "head", replace(cfg.head, cond_dim=width), replace(cfg.head_fine, cond_dim=width), cfg.head_aabb, cfg.head_samples, "canonical", conditions)
+        head = _layer(cfg, LayerConfig("head", "canonical", cfg.head_aabb, cfg.head_samples, replace(cfg.head, cond_dim=width), replace(cfg.head_fine, cond_dim=width), conditions))
         model.layers["head"] = head
         brow = torch.tensor([0.4])
         cond = FrameCondition(torch.zeros(cfg.audio_dim), pose, {"brow": brow})
@@ -209,3 +209,20 @@ def test_a_new_signal_is_one_registration_and_the_head_trains_on_it() -> None:
         assert float(loss().detach()) < first
     finally:
         SIGNALS.pop("brow", None)
+
+
+@pytest.mark.parametrize("head_in_front", [True, False])
+def test_the_model_is_built_from_its_layer_configs(head_in_front: bool) -> None:
+    """Each :class:`LayerConfig` of ``ModelConfig.layers`` is a layer of the model, in the same
+    drawing order, with its space, box, samples, conditions and fields' widths."""
+    model, _, _, _ = _scene(head_in_front)
+    cfg = replace(model.config, eye_dim=8)
+    layers = cfg.layers
+    assert [c.name for c in layers] == (["torso", "head"] if head_in_front else ["head", "torso"])
+    by = {c.name: c for c in layers}
+    assert (by["head"].space, by["torso"].space) == ("canonical", "camera")
+    assert by["head"].conditions == ("audio", "eye") and by["torso"].conditions == ("audio", "pose")
+    for c in model.config.layers:
+        layer = model.layers[c.name]
+        assert (layer.space, layer.aabb, layer.samples, layer.conditions) == (c.space, c.aabb, c.samples, c.conditions)
+        assert layer.coarse.config == c.coarse and layer.fine.config == c.fine

@@ -112,11 +112,11 @@ def test_kill_and_resume_gives_the_same_steps(tiny: Path, tmp_path: Path) -> Non
     straight = train(tiny, tmp_path / "straight", config=cfg, progress=False)
     killed = tmp_path / "killed"
     train(tiny, killed, config=cfg, progress=False, max_steps=5)  # "killed" after step 5: steps 4-5 are lost
-    assert torch.load(killed / "checkpoint.pt", weights_only=False)["head_step"] == 3
+    assert torch.load(killed / "checkpoint.pt", weights_only=False)["stages"]["head"]["step"] == 3
     train(tiny, killed, progress=False, resume=True)
     a = torch.load(straight / "checkpoint.pt", weights_only=False)
     b = torch.load(killed / "checkpoint.pt", weights_only=False)
-    assert (a["head_step"], a["torso_step"]) == (b["head_step"], b["torso_step"]) == (6, 3)
+    assert (a["stages"]["head"]["step"], a["stages"]["torso"]["step"]) == (b["stages"]["head"]["step"], b["stages"]["torso"]["step"]) == (6, 3)
     for key, value in a["model"].items():
         assert torch.equal(value, b["model"][key]), key
     with pytest.raises(RunError, match="already exists"):
@@ -130,11 +130,11 @@ def test_kill_and_resume_in_stage_two_gives_the_same_steps(tiny: Path, tmp_path:
     straight = train(tiny, tmp_path / "straight", config=cfg, progress=False)
     killed = tmp_path / "killed"
     train(tiny, killed, config=cfg, progress=False, max_steps=8)  # killed after torso step 5: steps 4-5 are lost
-    assert torch.load(killed / "checkpoint.pt", weights_only=False)["torso_step"] == 3
+    assert torch.load(killed / "checkpoint.pt", weights_only=False)["stages"]["torso"]["step"] == 3
     train(tiny, killed, progress=False, resume=True)
     a = torch.load(straight / "checkpoint.pt", weights_only=False)
     b = torch.load(killed / "checkpoint.pt", weights_only=False)
-    assert b["torso_step"] == 6
+    assert b["stages"]["torso"]["step"] == 6
     for key, value in a["model"].items():
         assert torch.equal(value, b["model"][key]), key
 
@@ -267,10 +267,13 @@ def test_stage_two_trains_the_frame_the_renderer_draws(tiny: Path, tiny_run: Pat
         else:
             assert held is None
     if head_in_front:  # the packed masks read back as the dense ones, a frame at a time and per ray
-        assert torch.equal(torch.stack([tr.reach.row(f) for f in range(ds.meta.n_frames)]), reach)
+        drawn = ds.meta.train[:: max(1, len(ds.meta.train) // 4)]
+        assert torch.nonzero(tr.reach_made)[:, 0].tolist() == sorted(drawn)  # made for the frames drawn, not the clip
+        every = torch.arange(ds.meta.height * ds.meta.width)
+        assert torch.equal(torch.stack([tr.behind_head(f, every) for f in range(ds.meta.n_frames)]), reach)
         frames = torch.randint(ds.meta.n_frames, (500,))
         pixels = torch.randint(ds.meta.height * ds.meta.width, (500,))
-        assert torch.equal(tr.reach.at(frames, pixels), reach[frames, pixels])
+        assert torch.equal(tr.behind_head(frames, pixels), reach[frames, pixels])
 
 
 def test_training_holds_a_clip_as_its_uint8_frames_and_labels(tiny: Path, tiny_run: Path, tmp_path: Path) -> None:

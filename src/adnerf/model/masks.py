@@ -38,8 +38,9 @@ class BitRows:
         """Bytes held."""
         return self.bytes.numel()
 
-    def set(self, rows: int | slice, masks: Tensor) -> None:
-        """Store ``masks`` ``(length,)`` (or ``(k, length)`` for a slice of ``k`` rows), bool."""
+    def set(self, rows: int | slice | Tensor, masks: Tensor) -> None:
+        """Store ``masks`` ``(length,)`` (or ``(k, length)`` for a slice or index tensor of ``k``
+        rows), bool."""
         m = masks.reshape(-1, self.length).to(device=self.bytes.device, dtype=torch.uint8)
         pad = self.bytes.shape[1] * 8 - self.length
         if pad:

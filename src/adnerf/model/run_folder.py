@@ -69,10 +69,9 @@ class Run:
         dataset: The dataset folder it was trained on.
         model: The model with the latest checkpoint's weights.
         train_config: The schedule.
-        head_step: Finished stage-1 iterations.
-        torso_step: Finished stage-2 iterations.
+        steps: Finished iterations by stage name (``{"head": n, "torso": m}``).
         meta: The dataset's ``meta.json`` content (camera, fps, boxes, feature kind).
-        elapsed: Training seconds per stage (``{"head": s, "torso": s}``), from the checkpoint.
+        elapsed: Training seconds by stage name (``{"head": s, "torso": s}``), from the checkpoint.
         pose_range: The head poses the training frames covered (:mod:`adnerf.model.pose_range`);
             ``None`` for a run written before the range was stored whose dataset is gone.
     """
@@ -81,11 +80,20 @@ class Run:
     dataset: Path
     model: TalkingHead
     train_config: TrainConfig
-    head_step: int
-    torso_step: int
+    steps: dict[str, int]
     meta: dict
     elapsed: dict = field(default_factory=dict)
     pose_range: PoseRange | None = None
+
+    @property
+    def head_step(self) -> int:
+        """Finished stage-1 iterations."""
+        return self.steps.get("head", 0)
+
+    @property
+    def torso_step(self) -> int:
+        """Finished stage-2 iterations."""
+        return self.steps.get("torso", 0)
 
     @property
     def has_torso(self) -> bool:
@@ -94,8 +102,10 @@ class Run:
 
     @property
     def trained_layers(self) -> tuple[str, ...]:
-        """The layers training has reached: all of them once stage 2 ran, else the head's."""
-        return tuple(self.model.layers) if self.has_torso else ("head",)
+        """The layers training has reached, in the model's order: those whose stage (the stage of
+        the same name) ran at least one iteration, and the first stage's layer (the head) always."""
+        first = next(iter(self.steps), "head")
+        return tuple(name for name in self.model.layers if name == first or self.steps.get(name, 0) > 0)
 
 
 def read_run_doc(root: Path) -> dict:
@@ -108,7 +118,29 @@ def stored_config(root: str | Path) -> TrainConfig:
     return TrainConfig.from_stored(read_run_doc(Path(root))["train"])
 
 
-CHECKPOINT_KEYS = ("model", "opt_head", "opt_torso", "generator", "head_step", "torso_step", "elapsed")
+CHECKPOINT_KEYS = ("model", "generator", "stages", "elapsed")
+"""What a checkpoint holds: the model's weights, the random generator's state, each stage's
+finished iterations and optimizer state by stage name (``{"head": {"step": n, "optimizer":
+state}, ...}``) and the training seconds by stage name (and ``mouth_probe`` with the mouth target)."""
+
+OLD_CHECKPOINT_KEYS = ("model", "opt_head", "opt_torso", "generator", "head_step", "torso_step", "elapsed")
+"""What a checkpoint held before the stages were named in it (:func:`migrate_checkpoint`)."""
+
+
+def migrate_checkpoint(ckpt: dict) -> dict:
+    """A checkpoint of the earlier layout (``head_step``, ``opt_head``, ``torso_step``,
+    ``opt_torso``) with its stages under their names (:data:`CHECKPOINT_KEYS`); one of the current
+    layout comes back unchanged."""
+    if "stages" in ckpt or any(k not in ckpt for k in OLD_CHECKPOINT_KEYS):
+        return ckpt
+    out = {k: v for k, v in ckpt.items() if k not in ("opt_head", "opt_torso", "head_step", "torso_step")}
+    out["stages"] = {name: {"step": ckpt[f"{name}_step"], "optimizer": ckpt[f"opt_{name}"]} for name in ("head", "torso")}
+    return out
+
+
+def stage_step(ckpt: dict, stage: str) -> int:
+    """The finished iterations of ``stage`` in checkpoint content (0 for a stage it does not hold)."""
+    return int(ckpt["stages"].get(stage, {}).get("step", 0))
 
 
 def read_checkpoint(path: Path, device: str | torch.device) -> dict:
@@ -122,6 +154,7 @@ def read_checkpoint(path: Path, device: str | torch.device) -> dict:
             f"{path}: damaged or incomplete checkpoint ({type(exc).__name__}: {exc}); adnerf writes checkpoints atomically, "
             "so the file was changed outside adnerf: restore it, or train a new run into another folder"
         ) from exc
+    ckpt = migrate_checkpoint(ckpt) if isinstance(ckpt, dict) else ckpt
     if not isinstance(ckpt, dict) or any(k not in ckpt for k in CHECKPOINT_KEYS):
         raise RunError(f"{path}: not an adnerf checkpoint (missing entries); restore it, or train a new run into another folder")
     return ckpt
@@ -140,12 +173,13 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     ckpt = read_checkpoint(ckpt_path, device)
     model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
     tcfg = TrainConfig.from_stored(doc["train"])
-    load_model_state(model, ckpt["model"], ckpt_path, scheduled_smoothing(tcfg, ckpt["head_step"]))
+    steps = {name: stage_step(ckpt, name) for name in ckpt["stages"]}
+    load_model_state(model, ckpt["model"], ckpt_path, scheduled_smoothing(tcfg, steps.get("head", 0)))
     model.eval()
     owner = lock_owner(root)
     if owner is not None:  # read beside a training: its last complete checkpoint (written atomically)
-        warnings.warn(f"{root} is being trained (process {owner.get('pid')} on {owner.get('host')}); using its last checkpoint, head step {ckpt['head_step']}/{tcfg.head_iters}, torso step {ckpt['torso_step']}/{tcfg.torso_iters}", stacklevel=2)
-    return Run(root, Path(doc["dataset"]), model, tcfg, ckpt["head_step"], ckpt["torso_step"], doc["meta"], ckpt["elapsed"], stored_pose_range(doc))
+        warnings.warn(f"{root} is being trained (process {owner.get('pid')} on {owner.get('host')}); using its last checkpoint, head step {steps.get('head', 0)}/{tcfg.head_iters}, torso step {steps.get('torso', 0)}/{tcfg.torso_iters}", stacklevel=2)
+    return Run(root, Path(doc["dataset"]), model, tcfg, steps, doc["meta"], ckpt["elapsed"], stored_pose_range(doc))
 
 
 def taught_pose_range(poses: np.ndarray, meta: SceneMeta) -> PoseRange:

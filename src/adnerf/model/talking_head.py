@@ -85,6 +85,31 @@ def mixed_precision(device: torch.device | str, mode: str = "auto") -> contextli
     return torch.autocast(device_type=device_type, dtype=torch.bfloat16)
 
 
+@dataclass(frozen=True)
+class LayerConfig:
+    """One radiance layer of a :class:`TalkingHead` (:attr:`ModelConfig.layers`).
+
+    Attributes:
+        name: The layer's name (``"head"``, ``"torso"``): the key of its weights, of its opacity in
+            a :class:`FrameRender` and of the stage that trains it.
+        space: ``"canonical"`` (the head's frame, moved by the head pose) or ``"camera"``.
+        aabb: The layer's box ``(min xyz, max xyz)`` in its space.
+        samples: ``(coarse, fine)`` samples per ray.
+        coarse: The coarse field.
+        fine: The fine field.
+        conditions: The signals it reads, in order (registered names of
+            :mod:`adnerf.model.conditions`); their widths sum to the fields' ``cond_dim``.
+    """
+
+    name: str
+    space: str
+    aabb: tuple[tuple[float, float, float], tuple[float, float, float]]
+    samples: tuple[int, int]
+    coarse: FieldConfig
+    fine: FieldConfig
+    conditions: tuple[str, ...]
+
+
 @dataclass
 class ModelConfig:
     """Architecture and sampling of a :class:`TalkingHead`.
@@ -138,6 +163,17 @@ class ModelConfig:
     eye_dim: int = 0
     head_in_front: bool = True
     mouth_dim: int = 0
+
+    @property
+    def layers(self) -> list[LayerConfig]:
+        """The layers back to front (the order they are drawn over the plate): the torso (camera
+        space; audio and head pose) then the head (canonical space; audio, and the eye and mouth
+        when their widths are set), or the other way round without ``head_in_front``. The
+        stored form (:meth:`to_dict`) stays the fields' flat one, which every run written so far
+        has."""
+        head = LayerConfig("head", "canonical", self.head_aabb, self.head_samples, self.head, self.head_fine, self.head_conditions)
+        torso = LayerConfig("torso", "camera", self.torso_aabb, self.torso_samples, self.torso, self.torso_fine, ("audio", "pose"))
+        return [torso, head] if self.head_in_front else [head, torso]
 
     @property
     def head_conditions(self) -> tuple[str, ...]:
@@ -219,14 +255,14 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
     )
 
 
-def _layer(config: ModelConfig, name: str, coarse: FieldConfig, fine: FieldConfig, aabb: tuple, samples: tuple[int, int], space: str, conditions: tuple[str, ...]) -> RadianceLayer:
+def _layer(config: ModelConfig, layer: LayerConfig) -> RadianceLayer:
     """A layer of coarse and fine radiance fields, checked against the width of its conditions."""
-    width = sum(signal_width(c, config.audio_dim) for c in conditions)
-    for which, field_config in (("coarse", coarse), ("fine", fine)):
+    width = sum(signal_width(c, config.audio_dim) for c in layer.conditions)
+    for which, field_config in (("coarse", layer.coarse), ("fine", layer.fine)):
         if field_config.cond_dim != width:
-            raise ValueError(f"the {name} layer's {which} field takes {field_config.cond_dim} condition values; its conditions {conditions} are {width} wide")
+            raise ValueError(f"the {layer.name} layer's {which} field takes {field_config.cond_dim} condition values; its conditions {layer.conditions} are {width} wide")
     return RadianceLayer(
-        name, RadianceField(coarse), RadianceField(fine), aabb, samples, space=space, conditions=conditions,
+        layer.name, RadianceField(layer.coarse), RadianceField(layer.fine), layer.aabb, layer.samples, space=layer.space, conditions=layer.conditions,
         occupancy_resolution=config.occupancy_resolution, occupancy_threshold=config.occupancy_threshold,
     )  # fmt: skip
 
@@ -249,10 +285,10 @@ class TalkingHead(nn.Module):
         self.config = config
         self.audio_net = AudioNet(config.feature_dim, config.audio_dim)
         self.att_net = AudioAttNet(config.audio_dim, config.att_len, config.att_centre_logit)
-        head = _layer(config, "head", config.head, config.head_fine, config.head_aabb, config.head_samples, "canonical", config.head_conditions)
-        torso = _layer(config, "torso", config.torso, config.torso_fine, config.torso_aabb, config.torso_samples, "camera", ("audio", "pose"))
-        stack = [torso, head] if config.head_in_front else [head, torso]
-        self.layers = nn.ModuleDict({layer.name: layer for layer in stack})
+        # The fields' initial weights are drawn head first (the order every seed was trained
+        # with), whatever the drawing order; the module dict keeps the drawing order.
+        made = {layer.name: _layer(config, layer) for layer in sorted(config.layers, key=lambda layer: layer.name != "head")}
+        self.layers = nn.ModuleDict({layer.name: made[layer.name] for layer in config.layers})
         # Per-feature standardisation of the audio windows, fitted on the training frames.
         self.register_buffer("feature_mean", torch.zeros(config.feature_dim))
         self.register_buffer("feature_std", torch.ones(config.feature_dim))

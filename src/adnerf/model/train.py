@@ -37,7 +37,7 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Callable, Iterator, Literal
+from typing import Callable, Iterator, Literal, Sequence
 
 import numpy as np
 import torch
@@ -81,9 +81,11 @@ from .run_folder import (
     resumed_config,
     save_atomic,
     scheduled_smoothing,
+    stage_step,
     stored_config,
     write_run,
 )
+from .stages import Stage, default_stages, group_parameters
 from .talking_head import (
     ModelConfig,
     TalkingHead,
@@ -313,10 +315,11 @@ def mouth_plan(ds: TalkingHeadDataset, tcfg: TrainConfig) -> MouthPlan:
 class Trainer:
     """A training session of a talking head on a dataset, stepped by its stages.
 
-    :func:`train` drives one through a run folder; ``bench fields`` steps one a few iterations at
-    a time (:meth:`head_stage` with ``max_steps``) and reads its clock (``elapsed``, seconds per
-    stage), counters (``head_step``, ``torso_step``, ``samples``: field evaluations) and tensors
-    (``rays``, ``plate``, ``windows``: on ``device``).
+    :func:`train` drives one through a run folder (:meth:`fit`); ``bench fields`` steps one a few
+    iterations at a time (:meth:`head_stage` with ``max_steps``) and reads its clock (``elapsed``,
+    seconds by stage name), counters (``steps`` by stage name, with ``head_step`` and
+    ``torso_step`` for the default two; ``samples``: field evaluations) and tensors (``rays``,
+    ``plate``, ``windows``: on ``device``).
 
     Args:
         root: The run folder (checkpoints and the log are written there by the main process).
@@ -328,9 +331,14 @@ class Trainer:
         ranks: This process among the training processes (:mod:`adnerf.model.distributed`).
         plan: Whether and on what the mouth target is trained (:func:`mouth_plan` of ``ds`` and
             ``tcfg`` when ``None``).
+        stages: The schedule's stages in order (:func:`~adnerf.model.stages.default_stages` of
+            ``tcfg`` when ``None``); each gets an optimizer of its parameter groups.
     """
 
-    def __init__(self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool, ranks: Ranks = Ranks(), plan: "MouthPlan | None" = None) -> None:
+    def __init__(
+        self, root: Path, ds: TalkingHeadDataset, mcfg: ModelConfig, tcfg: TrainConfig, device: str, progress: bool,
+        ranks: Ranks = Ranks(), plan: "MouthPlan | None" = None, stages: Sequence[Stage] | None = None,
+    ) -> None:  # fmt: skip
         self.root, self.ds, self.tcfg, self.device, self.ranks = root, ds, tcfg, device, ranks
         self.files = RunFolder(root)  # where the checkpoint and the log go
         self.progress = progress and ranks.main
@@ -361,21 +369,19 @@ class Trainer:
         # a bit a pixel (crossing every pixel's ray costs more than a tenth of a CPU step).
         self.in_head_box = BitRows(ds.meta.n_frames, ds.meta.width * ds.meta.height, device)
         self.boxed = torch.zeros(ds.meta.n_frames, dtype=torch.bool)
+        self.reach_made = torch.zeros(ds.meta.n_frames, dtype=torch.bool)  # frames whose row of reach is made
         m = self.model
         m.fit_feature_scale(self.windows[self.train_frames.to(device)])
         # On CUDA one fused kernel updates every parameter: a 1024-ray stage-1 step took 34 ms on
         # an H200 against 47 ms with PyTorch's default multi-tensor Adam. The update is Adam's
         # either way; the CPU keeps its per-parameter loop.
         fused = {"fused": True} if torch.device(device).type == "cuda" else {}
-        self.opt_head = torch.optim.Adam(
-            [
-                {"params": list(m.layers["head"].parameters()), "lr": tcfg.lr},
-                {"params": list(m.audio_net.parameters()) + list(m.att_net.parameters()), "lr": tcfg.lr_audio},
-            ],
-            betas=(0.9, 0.99),
-            **fused,
-        )
-        self.opt_torso = torch.optim.Adam(list(m.layers["torso"].parameters()), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
+        # Each stage's optimizer, its parameter groups as the stage names them.
+        self.stages = {stage.name: stage for stage in (default_stages(tcfg) if stages is None else stages)}
+        self.optimizers = {
+            stage.name: torch.optim.Adam([{"params": group_parameters(m, g), "lr": g.lr} for g in stage.groups], betas=(0.9, 0.99), **fused)
+            for stage in self.stages.values()
+        }
         # The mouth targets the audio code is asked to predict (stage 1), from the landmarks, where
         # the clip's audio predicts them (mouth_doc says whether and why, for run.json). A head that
         # reads the mouth is given each frame's own; its read-out is the model's (rendering uses it).
@@ -393,23 +399,64 @@ class Trainer:
         elif self.progress and "signal" in plan.doc:
             print(f"adnerf: {plan.doc['why']}", file=sys.stderr)
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
-        self.head_step = self.torso_step = 0
-        self.elapsed = {"head": 0.0, "torso": 0.0}
+        self.steps = {name: 0 for name in self.stages}  # finished iterations, by stage
+        self.elapsed = {name: 0.0 for name in self.stages}  # seconds spent in steps, by stage
         self.samples = 0  # field evaluations (after empty-space skipping) since construction
         self.stop_signal: int | None = None  # set by a signal (stop_on_signals): stop after this step
 
+    # The two stages of the default schedule by their old names (bench fields and tests read them).
+    @property
+    def head_step(self) -> int:
+        """Finished stage-1 iterations (``steps["head"]``)."""
+        return self.steps["head"]
+
+    @head_step.setter
+    def head_step(self, value: int) -> None:
+        self.steps["head"] = value
+
+    @property
+    def torso_step(self) -> int:
+        """Finished stage-2 iterations (``steps["torso"]``)."""
+        return self.steps.get("torso", 0)
+
+    @property
+    def opt_head(self) -> torch.optim.Optimizer:
+        """Stage 1's optimizer (``optimizers["head"]``)."""
+        return self.optimizers["head"]
+
+    @property
+    def opt_torso(self) -> torch.optim.Optimizer:
+        """Stage 2's optimizer (``optimizers["torso"]``)."""
+        return self.optimizers["torso"]
+
+    @cached_property
+    def neck_reach_px(self) -> int:
+        """:func:`neck_reach` of the clip: the reach behind the chin in pixels, from every frame's
+        head height (one pass over the labels, 64 frames at a time)."""
+        h, n = self.ds.meta.height, self.ds.meta.n_frames
+        return neck_reach(torch.cat([head_heights(self.labels[start : start + 64] == LABEL_HEAD, h) for start in range(0, n, 64)]))
+
     @cached_property
     def reach(self) -> BitRows:
-        """Where the torso may be opaque behind the head (stage 2, head in front): :func:`behind_chin`
-        of every frame, a bit a pixel, made on first use (64 frames at a time)."""
-        h, w, n = self.ds.meta.height, self.ds.meta.width, self.ds.meta.n_frames
-        chunks = [slice(start, min(start + 64, n)) for start in range(0, n, 64)]
-        reach = neck_reach(torch.cat([head_heights(self.labels[c] == LABEL_HEAD, h) for c in chunks]))
-        bits = BitRows(n, h * w, self.device)
-        for c in chunks:
-            labels = self.labels[c]
-            bits.set(c, near_torso(labels == LABEL_TORSO, h, w, reach) & (labels == LABEL_HEAD))
-        return bits
+        """Where the torso may be opaque behind the head (stage 2, head in front), a bit a pixel:
+        a frame's row is :func:`behind_chin` of it, made on its first draw (:meth:`behind_head`)
+        and kept; rows of frames not drawn yet are empty."""
+        return BitRows(self.ds.meta.n_frames, self.ds.meta.height * self.ds.meta.width, self.device)
+
+    def behind_head(self, frame: int | torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
+        """Whether the torso may be opaque behind the head at pixels ``pix`` ``(R,)`` of ``frame``
+        (or of each ray's frame ``(R,)``), bool ``(R,)``: :func:`behind_chin` of the frame, made
+        on the frame's first draw (a clip's worth of masks before the first step took minutes for
+        minutes of footage)."""
+        reach = self.reach
+        drawn = torch.unique(torch.as_tensor(frame).reshape(-1).cpu())
+        todo = drawn[~self.reach_made[drawn]]
+        if todo.numel():
+            h, w = self.ds.meta.height, self.ds.meta.width
+            labels = self.labels[todo.to(self.labels.device)]
+            reach.set(todo.to(reach.bytes.device), near_torso(labels == LABEL_TORSO, h, w, self.neck_reach_px) & (labels == LABEL_HEAD))
+            self.reach_made[todo] = True
+        return reach.at(frame, pix)
 
     def frame_bytes(self) -> dict[str, int]:
         """Bytes held for each frame of the clip, by store: the uint8 frames and labels, the
@@ -436,11 +483,8 @@ class Trainer:
             return
         state = {
             "model": self.model.state_dict(),
-            "opt_head": self.opt_head.state_dict(),
-            "opt_torso": self.opt_torso.state_dict(),
             "generator": self.generator.get_state(),
-            "head_step": self.head_step,
-            "torso_step": self.torso_step,
+            "stages": {name: {"step": self.steps[name], "optimizer": opt.state_dict()} for name, opt in self.optimizers.items()},
             "elapsed": self.elapsed,
         }
         if self.mouth_probe is not None:
@@ -450,17 +494,19 @@ class Trainer:
     def load(self, ckpt: dict) -> None:
         """Continue from checkpoint content (see :func:`read_checkpoint`); the log keeps only the
         lines of the steps the checkpoint holds, so a resumed run logs each step once."""
-        load_model_state(self.model, ckpt["model"], self.files.checkpoint, scheduled_smoothing(self.tcfg, ckpt["head_step"]))
-        self.opt_head.load_state_dict(ckpt["opt_head"])
-        self.opt_torso.load_state_dict(ckpt["opt_torso"])
+        load_model_state(self.model, ckpt["model"], self.files.checkpoint, scheduled_smoothing(self.tcfg, stage_step(ckpt, "head")))
+        for name, opt in self.optimizers.items():
+            if name in ckpt["stages"]:
+                opt.load_state_dict(ckpt["stages"][name]["optimizer"])
+            self.steps[name] = stage_step(ckpt, name)
         self.generator.set_state(ckpt["generator"].cpu())  # loaded with map_location=device
-        self.head_step, self.torso_step, self.elapsed = ckpt["head_step"], ckpt["torso_step"], ckpt["elapsed"]
+        self.elapsed = {**self.elapsed, **ckpt["elapsed"]}
         if self.mouth_probe is not None and "mouth_probe" in ckpt:
             self.mouth_probe.load_state_dict(ckpt["mouth_probe"]["model"])
             self.opt_probe.load_state_dict(ckpt["mouth_probe"]["opt"])
         log = self.files.log
         if log.exists() and self.ranks.main:
-            done = {"head": self.head_step, "torso": self.torso_step}
+            done = self.steps
             rows = [line for line in log.read_text().splitlines() if line.strip()]
             kept = []
             for line in rows:
@@ -592,21 +638,21 @@ class Trainer:
             self.model.layers[layer].update_occupancy(FrameCondition(cond.audio.detach(), cond.pose, cond.extra), generator=self.generator)
 
     # ---- stages
-    def _loop(self, stage: str, iters: int, step_fn: Callable[[int], tuple[float, float]], max_steps: int | None) -> None:
-        """Run ``step_fn(step) -> (loss, fine mse)`` until ``iters``; log means over each log window."""
-        start_step = getattr(self, f"{stage}_step")
-        bar = tqdm(total=iters, initial=start_step, desc=f"train {stage}", unit="it", disable=not self.progress, dynamic_ncols=True)
+    def _loop(self, stage: Stage, step_fn: Callable[[int], tuple[float, float]], max_steps: int | None) -> None:
+        """Run ``step_fn(step) -> (loss, fine mse)`` until the stage's iterations; log means over each log window."""
+        name, iters = stage.name, stage.iters
+        bar = tqdm(total=iters, initial=self.steps[name], desc=f"train {name}", unit="it", disable=not self.progress, dynamic_ncols=True)
         window_t, window_n, window_loss, window_mse, window_samples = time.perf_counter(), 0, 0.0, 0.0, self.samples
         done_here = 0
         try:  # the bar is closed before any error is printed
-            while getattr(self, f"{stage}_step") < iters:
+            while self.steps[name] < iters:
                 if max_steps is not None and done_here >= max_steps:
                     break
-                step = getattr(self, f"{stage}_step")
+                step = self.steps[name]
                 t0 = time.perf_counter()
                 loss, mse = step_fn(step)
-                self.elapsed[stage] += time.perf_counter() - t0
-                setattr(self, f"{stage}_step", step + 1)
+                self.elapsed[name] += time.perf_counter() - t0
+                self.steps[name] = step + 1
                 done_here += 1
                 window_n += 1
                 window_loss += loss
@@ -620,16 +666,16 @@ class Trainer:
                     psnr = psnr_from_mse(mse)
                     window_t, window_n, window_loss, window_mse, window_samples = now, 0, 0.0, 0.0, self.samples
                     bar.set_postfix(loss=f"{loss:.2e}", psnr=f"{psnr:.2f}", rays_s=f"{rays_per_s:.0f}")
-                    row = {"stage": stage, "step": step + 1, "loss": loss, "mse": mse, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
+                    row = {"stage": name, "step": step + 1, "loss": loss, "mse": mse, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
                     if self.lip_window:  # the mouth target's error (standardised units; 1: no better than the mean mouth)
                         row["lip"], self.lip_window = float(torch.stack(self.lip_window).mean()), []
-                    self.log({**row, "elapsed": self.elapsed[stage]})
+                    self.log({**row, "elapsed": self.elapsed[name]})
                 if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
                     self.save()
                 if self.stop_signal is not None:
                     if (step + 1) % self.tcfg.checkpoint_every and step + 1 != iters:
                         self.save()
-                    raise TrainingInterrupted(self.stop_signal, stage, step + 1, iters)
+                    raise TrainingInterrupted(self.stop_signal, name, step + 1, iters)
         finally:
             bar.close()
 
@@ -681,25 +727,10 @@ class Trainer:
         speech = self.pick_frame()
         return frame, pix, self.condition(frame, self.code(speech), pose, speech)
 
-    def head_stage(self, max_steps: int | None) -> None:
-        tcfg = self.tcfg
-        sched = _Schedule(self.opt_head, [tcfg.lr, tcfg.lr_audio], tcfg.head_iters, tcfg.lr_final)
-        self.model.train()
-
-        def rays_of(frame: int, pose: HeadPose, n: int) -> torch.Tensor:
-            return self.pick_among(self.head_box_pixels(frame, pose), self.mouth_pixels(pose), tcfg.mouth_rays, n)
-
-        def step_fn(step: int) -> tuple[float, float]:
-            sched.set(step)
-            self.model.set_audio_smoothing(step >= tcfg.att_start * tcfg.head_iters)
-            groups = self.step_frames("head", step, tcfg.head_iters, rays_of, self.codes)
-            eye_batch = self.eye_batch()  # heads that blink: rays at the eyes of another frame
-            if eye_batch is not None:
-                groups.append(eye_batch)
-            part = self.head_part(self.batch_of(groups))
-            return _optimise([part], tcfg.mask_weight, self.opt_head, self.ranks, self.mouth_loss())
-
-        self._loop("head", tcfg.head_iters, step_fn, max_steps)
+    def head_rays(self, frame: int, pose: HeadPose, n: int) -> torch.Tensor:
+        """Stage-1 pixels of ``frame``: ``n`` of those whose ray crosses the head box, the
+        ``mouth_rays`` share of them around the mouth."""
+        return self.pick_among(self.head_box_pixels(frame, pose), self.mouth_pixels(pose), self.tcfg.mouth_rays, n)
 
     def frozen_head(self, pix: torch.Tensor, cond: FrameCondition) -> Layer:
         """The stage-1 head along pixels ``pix`` ``(R,)`` under ``cond`` (one frame's, or each
@@ -738,30 +769,92 @@ class Trainer:
             return replace(c, rgb=over(head, Layer.opaque(c.rgb.float())).rgb)
 
         out = RenderOutput(under_head(out.coarse), None if out.fine is None else under_head(out.fine), out.samples_evaluated)
-        return out, self.colours(frame, pix), self.labelled(LABEL_TORSO, frame, pix), ~self.reach.at(frame, pix)
+        return out, self.colours(frame, pix), self.labelled(LABEL_TORSO, frame, pix), ~self.behind_head(frame, pix)
 
-    def torso_stage(self, max_steps: int | None) -> None:
-        tcfg = self.tcfg
-        if self.head_step < tcfg.head_iters:
-            raise RunError(f"stage 2 needs a finished stage 1 ({self.head_step}/{tcfg.head_iters} head iterations); run --stage head first")
+    @cached_property
+    def torso_box_pixels(self) -> torch.Tensor:
+        """Flat indices of the pixels whose ray crosses the torso box (camera space: every frame's)."""
         near, far = self.model.layers["torso"].crossing(self.rays)
-        with torch.no_grad():
-            codes = self.model.frame_codes(self.windows)
-        candidates = torch.nonzero(far > near)[:, 0]
-        sched = _Schedule(self.opt_torso, [tcfg.lr], tcfg.torso_iters, tcfg.lr_final)
-        self.model.train()
+        return torch.nonzero(far > near)[:, 0]
 
-        def rays_of(frame: int, pose: HeadPose, n: int) -> torch.Tensor:
-            return self.pick_among(candidates, torch.nonzero(self.labelled(LABEL_TORSO, frame))[:, 0], tcfg.torso_person_rays, n)
+    def torso_rays(self, frame: int, pose: HeadPose, n: int) -> torch.Tensor:
+        """Stage-2 pixels of ``frame``: ``n`` of those whose ray crosses the torso box, the
+        ``torso_person_rays`` share of them on the frame's torso label."""
+        return self.pick_among(self.torso_box_pixels, torch.nonzero(self.labelled(LABEL_TORSO, frame))[:, 0], self.tcfg.torso_person_rays, n)
+
+    def torso_batch_part(self, batch: Batch) -> Part:
+        """:meth:`torso_part` of a stage-2 batch (:meth:`batch_of`)."""
+        return self.torso_part(batch.frame, batch.pixels, batch.condition, generator=batch.generator)
+
+    @property
+    def layer_steps(self) -> dict[str, tuple[Callable[[int, HeadPose, int], torch.Tensor], Callable[[Batch], Part]]]:
+        """What a stage's step draws for each layer: ``(rays_of(frame, pose, n) -> pixels,
+        part(batch) -> (render, target, mask, opacity-held rays))``."""
+        return {"head": (self.head_rays, self.head_part), "torso": (self.torso_rays, self.torso_batch_part)}
+
+    # ---- stages
+    def run_stage(self, stage: Stage, max_steps: int | None) -> None:
+        """Train ``stage`` from its finished iterations to its end, or ``max_steps`` of it.
+
+        A step sets the learning rates, draws ``frames`` training frames and their rays for the
+        stage's layer, makes their audio codes (with gradients when the stage trains the audio
+        encoders, which also switch AudioAttNet on at ``att_start`` of the stage and fit the mouth
+        target; heads that blink add eye rays) and takes one optimizer step.
+
+        Raises:
+            RunError: A layer the stage draws frozen is not finished training.
+        """
+        tcfg = self.tcfg
+        for other in self.stages.values():
+            if other.layer in stage.frozen and self.steps[other.name] < other.iters:
+                raise RunError(
+                    f"the {stage.name} stage needs a finished {other.name} stage (stage {list(self.stages).index(other.name) + 1}; "
+                    f"{self.steps[other.name]}/{other.iters} {other.name} iterations); run --stage {other.name} first"
+                )
+        rays_of, part_of = self.layer_steps[stage.layer]
+        if stage.trains_audio:
+            codes_of = self.codes
+        else:
+            with torch.no_grad():
+                codes = self.model.frame_codes(self.windows)
+            codes_of = lambda frames: codes[frames]  # noqa: E731
+        opt = self.optimizers[stage.name]
+        sched = _Schedule(opt, [g.lr for g in stage.groups], stage.iters, tcfg.lr_final)
+        teaches_eye = stage.trains_audio and "eye" in self.model.layers[stage.layer].conditions
+        self.model.train()
 
         def step_fn(step: int) -> tuple[float, float]:
             sched.set(step)
-            groups = self.step_frames("torso", step, tcfg.torso_iters, rays_of, lambda frames: codes[frames])
-            b = self.batch_of(groups)
-            part = self.torso_part(b.frame, b.pixels, b.condition, generator=b.generator)
-            return _optimise([part], tcfg.mask_weight, self.opt_torso, self.ranks)
+            if stage.trains_audio:
+                self.model.set_audio_smoothing(step >= tcfg.att_start * stage.iters)
+            groups = self.step_frames(stage.layer, step, stage.iters, rays_of, codes_of)
+            eye_batch = self.eye_batch() if teaches_eye else None  # heads that blink: rays at the eyes of another frame
+            if eye_batch is not None:
+                groups.append(eye_batch)
+            part = part_of(self.batch_of(groups))
+            return _optimise([part], tcfg.mask_weight, opt, self.ranks, self.mouth_loss() if stage.trains_audio else None)
 
-        self._loop("torso", tcfg.torso_iters, step_fn, max_steps)
+        self._loop(stage, step_fn, max_steps)
+
+    def fit(self, stages: Sequence[Stage] | None = None, max_steps: int | None = None) -> None:
+        """Run stages in order (default: all of the schedule's), ``max_steps`` iterations in all at
+        most; a finished stage is passed over."""
+        budget = max_steps
+        for stage in self.stages.values() if stages is None else stages:
+            if budget is not None and budget <= 0:
+                break
+            before = self.steps[stage.name]
+            self.run_stage(stage, budget)
+            if budget is not None:
+                budget -= self.steps[stage.name] - before
+
+    def head_stage(self, max_steps: int | None) -> None:
+        """Stage 1 (:meth:`run_stage` of the ``"head"`` stage)."""
+        self.run_stage(self.stages["head"], max_steps)
+
+    def torso_stage(self, max_steps: int | None) -> None:
+        """Stage 2 (:meth:`run_stage` of the ``"torso"`` stage)."""
+        self.run_stage(self.stages["torso"], max_steps)
 
 
 def train(
@@ -831,9 +924,13 @@ def train(
         mcfg = model_config(ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train), mouth=plan.used and tcfg.mouth_input == 1)  # type: ignore[arg-type]
     if mcfg.feature_dim != ds.meta.feature_dim:
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")
-    head_done = ckpt["head_step"] if ckpt else 0
-    if stage == "torso" and head_done < tcfg.head_iters:
-        raise RunError(f"stage 2 needs a finished stage 1 ({head_done}/{tcfg.head_iters} head iterations); run --stage head (with --resume) first")
+    stages = default_stages(tcfg)
+    chosen = [s for s in stages if stage in ("all", s.name)]
+    for k, s in enumerate(stages):  # a stage drawing a layer frozen needs the stage that trains it finished, or run first
+        for j, other in enumerate(stages):
+            done = stage_step(ckpt, other.name) if ckpt else 0
+            if s in chosen and other.layer in s.frozen and other not in chosen and done < other.iters:
+                raise RunError(f"stage {k + 1} needs a finished stage {j + 1} ({done}/{other.iters} {other.name} iterations); run --stage {other.name} (with --resume) first")
     if (tcfg.rays // tcfg.frames) % ranks.world:
         raise RunError(f"{ranks.world} processes must split the {tcfg.rays // tcfg.frames} rays of each frame in a batch evenly; choose rays divisible by {ranks.world * tcfg.frames}")
     # One writer per run folder: a second training of it (another terminal, a restarted job)
@@ -848,15 +945,8 @@ def train(
         if ranks.main:
             write_run(root, dataset, ds, mcfg, tcfg, {"world_size": ranks.world, "backend": ranks.backend, "devices": devices}, {"mouth_target": trainer.mouth_doc})
         ranks.barrier()
-        budget = max_steps
         with stop_on_signals(trainer):
-            if stage in ("head", "all"):
-                before = trainer.head_step
-                trainer.head_stage(budget)
-                if budget is not None:
-                    budget -= trainer.head_step - before
-            if stage == "torso" or (stage == "all" and tcfg.torso_iters > 0 and (budget is None or budget > 0)):
-                trainer.torso_stage(budget)
+            trainer.fit(chosen, max_steps)
         if not files.checkpoint.exists():
             trainer.save()
         ranks.barrier()
