@@ -177,7 +177,7 @@ def test_resume_continues_the_stored_config(scene: Path, tmp_path: Path, capsys:
     stored = json.loads((out / "run.json").read_text())["train"]
     assert (stored["rays"], stored["lr"], stored["head_iters"], stored["torso_iters"]) == (64, 0.005, 6, 2)
     ckpt = torch.load(out / "checkpoint.pt", weights_only=False)
-    assert (ckpt["head_step"], ckpt["torso_step"]) == (6, 2)
+    assert (ckpt["stages"]["head"]["step"], ckpt["stages"]["torso"]["step"]) == (6, 2)
     # More iterations is a change a resume may make; other settings are refused, changing nothing.
     assert main(["train", str(scene), "-o", str(out), "--stage", "torso", "--resume", "--iters", "3", "--amp", "off"]) == 0
     assert json.loads((out / "run.json").read_text())["train"]["rays"] == 64
@@ -197,7 +197,7 @@ def test_scale_trains_the_schedule_in_fewer_larger_steps_and_only_for_a_new_run(
     assert (stored["rays"], stored["frames"], stored["head_iters"], stored["torso_iters"]) == (128, 2, 3, 2)  # --iters 6: 6 + 3, then halved
     assert math.isclose(stored["lr"], 0.005 * math.sqrt(2))
     ckpt = torch.load(out / "checkpoint.pt", weights_only=False)
-    assert (ckpt["head_step"], ckpt["torso_step"]) == (3, 2)
+    assert (ckpt["stages"]["head"]["step"], ckpt["stages"]["torso"]["step"]) == (3, 2)
     before = _tree(out)
     _fails(["train", str(scene), "-o", str(out), "--resume", "--scale", "2"], "drop --scale", capsys)
     _fails(["train", str(scene), "-o", str(tmp_path / "r0"), "--scale", "0"], "must be >= 1", capsys)
@@ -283,7 +283,7 @@ def test_training_goes_through_frames_without_torso_and_fully_skipped_steps(scen
     monkeypatch.setattr(RadianceLayer, "update_occupancy", empty_grid)
     root = train(data, tmp_path / "run", config=cfg, progress=False)
     ckpt = torch.load(root / "checkpoint.pt", weights_only=False)
-    assert (ckpt["head_step"], ckpt["torso_step"]) == (8, 4) and {"head", "torso"} <= set(calls)
+    assert (ckpt["stages"]["head"]["step"], ckpt["stages"]["torso"]["step"]) == (8, 4) and {"head", "torso"} <= set(calls)
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
 
 
@@ -339,7 +339,7 @@ def test_resumed_log_holds_each_step_once(scene: Path, tmp_path: Path) -> None:
     cfg = TrainConfig(**{**CFG, "log_every": 1})
     out = tmp_path / "run"
     train(scene, out, config=cfg, progress=False, max_steps=6)  # "killed" after step 6; the checkpoint holds 4
-    assert torch.load(out / "checkpoint.pt", weights_only=False)["head_step"] == 4
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["stages"]["head"]["step"] == 4
     with open(out / "log.jsonl", "a") as f:
         f.write('{"stage": "head", "st')  # a line cut by the kill
     train(scene, out, progress=False, resume=True)
@@ -439,7 +439,7 @@ def test_a_second_writer_is_refused_and_a_signal_stops_training_with_its_checkpo
     step = int(lines[0].split("stopped at head step ")[1].split(" ")[0])
     assert lines[0].endswith(f"of 1000000 ({signum}); --resume continues")
     ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=False)
-    assert ckpt["head_step"] == step
+    assert ckpt["stages"]["head"]["step"] == step
     logged = [json.loads(line)["step"] for line in (run_dir / "log.jsonl").read_text().splitlines()]
     assert logged == sorted(set(logged))  # each step once, in order
     assert not lock_path(run_dir).exists()  # released

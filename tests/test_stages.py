@@ -68,6 +68,10 @@ def test_fit_runs_stages_in_order_within_the_budget_and_waits_for_frozen_layers(
     assert tr.steps == {"head": 3, "torso": 1}
     tr.fit()
     assert tr.steps == {"head": 3, "torso": 2}
+    tr.set_iterations("torso", 4)  # stretched (bench fields fits its schedule as it goes): the stage and the schedule
+    assert (tr.stages["torso"].iters, tr.tcfg.torso_iters) == (4, 4)
+    tr.fit()
+    assert tr.steps == {"head": 3, "torso": 4}
 
 
 def test_a_checkpoint_of_the_earlier_layout_resumes_to_the_same_steps(tiny: Path, tmp_path: Path) -> None:

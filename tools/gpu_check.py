@@ -175,7 +175,7 @@ def step_steps(args: argparse.Namespace) -> dict:
         root.mkdir(parents=True, exist_ok=True)
         trainer = Trainer(root, ds, model_config(ds.meta, "fast", eye=blinks_in(ds.eye, ds.meta.train)), tcfg, args.device, False)
         if adam == "foreach":
-            trainer.opt_head = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in trainer.opt_head.param_groups], betas=(0.9, 0.99))
+            trainer.optimizers["head"] = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in trainer.opt_head.param_groups], betas=(0.9, 0.99))
         trainer.head_stage(warm)  # past occupancy_start: empty-space skipping on, as in most of a run
         _sync(args.device)
         t0 = time.perf_counter()

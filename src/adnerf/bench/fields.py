@@ -168,7 +168,7 @@ def run_config(dataset: str, cfg: FieldBenchConfig, budget: float, checkpoints: 
 
         def fit_schedule() -> None:  # iterations that fit the rest of the budget at the current speed
             rate = tr.head_step / max(tr.elapsed["head"], 1e-9)
-            tr.tcfg.head_iters = max(tr.head_step + 1, tr.head_step + round((budget - tr.elapsed["head"]) * rate))
+            tr.set_iterations("head", max(tr.head_step + 1, tr.head_step + round((budget - tr.elapsed["head"]) * rate)))
 
         while tr.head_step < 3 and tr.elapsed["head"] < budget:
             tr.head_stage(1)

@@ -848,6 +848,14 @@ class Trainer:
             if budget is not None:
                 budget -= self.steps[stage.name] - before
 
+    def set_iterations(self, name: str, iters: int) -> None:
+        """Stretch or shorten stage ``name`` to ``iters`` iterations, in the stage and the schedule
+        (``bench fields`` fits its schedule to a time budget as it goes); the learning rates and
+        AudioAttNet's start follow the new length from the next step."""
+        self.stages[name] = replace(self.stages[name], iters=iters)
+        if hasattr(self.tcfg, f"{name}_iters"):
+            setattr(self.tcfg, f"{name}_iters", iters)
+
     def head_stage(self, max_steps: int | None) -> None:
         """Stage 1 (:meth:`run_stage` of the ``"head"`` stage)."""
         self.run_stage(self.stages["head"], max_steps)
