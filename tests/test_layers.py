@@ -226,3 +226,40 @@ def test_the_model_is_built_from_its_layer_configs(head_in_front: bool) -> None:
         layer = model.layers[c.name]
         assert (layer.space, layer.aabb, layer.samples, layer.conditions) == (c.space, c.aabb, c.samples, c.conditions)
         assert layer.coarse.config == c.coarse and layer.fine.config == c.fine
+
+
+def test_a_registered_signal_is_trained_from_the_dataset_and_rendered_at_rest(tmp_path) -> None:  # noqa: ANN001
+    """A made-up ``brow`` signal with a track (here the synthetic scene's true jaw) and a rest
+    value: a model config that names it widens the head's input by its width and stores it; the
+    Trainer hands each frame its own value and two steps move the weights that read it; a frame
+    rendered without one gets the rest value; a dataset without values is refused."""
+    import json
+
+    from adnerf.formats.dataset import load_dataset
+    from adnerf.model.conditions import SIGNALS, Signal, register_signal
+    from adnerf.model.run_folder import RunError
+    from adnerf.model.talking_head import ModelConfig
+    from adnerf.model.train import TrainConfig, Trainer
+    from adnerf.synth import SynthConfig, synthesize
+
+    data = synthesize(tmp_path / "data", SynthConfig(seconds=1.2, size=24, seed=2))
+    ds = load_dataset(data)
+    register_signal(Signal("brow", 3, lambda v: torch.cat([v, v * v, torch.sin(3 * v)], dim=-1), track=lambda d: None if d.truth is None else d.truth.jaw, rest=(0.25,)))
+    try:
+        mcfg = model_config(ds.meta, signals=("brow",))
+        assert mcfg.head_conditions[-1] == "brow" and mcfg.head.cond_dim == model_config(ds.meta).head.cond_dim + 3
+        assert ModelConfig.from_dict(json.loads(json.dumps(mcfg.to_dict()))) == mcfg  # stored with the run
+        tr = Trainer(tmp_path, ds, mcfg, TrainConfig(head_iters=2, torso_iters=0, rays=64), "cpu", False)
+        code = torch.zeros(mcfg.audio_dim)
+        for f in (0, 7, 20):
+            assert torch.equal(tr.condition(f, code, ds.head_pose(f)).extra["brow"], torch.tensor([ds.truth.jaw[f]], dtype=torch.float32))
+        head = tr.model.layers["head"]
+        reads = [p for p in head.parameters() if p.ndim == 2 and p.shape[1] >= mcfg.head.cond_dim]  # the first linear maps of the fields
+        before = [p.detach()[:, -3:].clone() for p in reads]
+        tr.fit()
+        assert tr.head_step == 2 and reads and any(not torch.equal(p[:, -3:], b) for p, b in zip(reads, before))  # the columns reading the brow moved
+        assert torch.equal(tr.model.condition(code, ds.head_pose(0)).extra["brow"], torch.tensor([0.25]))  # rendering new audio: at rest
+        with pytest.raises(RunError, match="'brow' signal"):
+            Trainer(tmp_path, load_dataset(data, truth=False), mcfg, TrainConfig(head_iters=2, torso_iters=0, rays=64), "cpu", False)
+    finally:
+        SIGNALS.pop("brow", None)

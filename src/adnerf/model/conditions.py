@@ -8,17 +8,21 @@ continuous code (:meth:`~adnerf.pose.HeadPose.code`), the eye openness as its co
 (:func:`eye_code`), every other signal as it is.
 
 Every signal but the audio code is a registered :class:`Signal` (its name, its width in a field's
-input and how a frame's value becomes that input): ``pose``, ``eye`` and ``mouth`` are registered
-here. Adding a condition is one :func:`register_signal` and naming it in the layers that read it
-(a frame then carries its value in ``extra``); the renderer and the compositor are not touched.
+input, how a frame's value becomes that input, and for a new one where training finds each
+frame's value and what a rendered frame gets without one): ``pose``, ``eye`` and ``mouth`` are
+registered here. Adding a condition is one :func:`register_signal` and naming it in the model
+(``model_config(meta, signals=(name,))``, stored as ``ModelConfig.head_signals``): the trainer
+hands each frame its value from the dataset (the signal's ``track``), rendering its ``rest``
+value; a frame carries it in ``extra``. The renderer and the compositor are not touched.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -44,11 +48,19 @@ class Signal:
         name: The name layers list it by (and a frame's ``extra`` key).
         width: Its width in a field's input.
         encode: A frame's value ``(..., k)`` -> the field's input ``(..., width)``.
+        track: For a signal training reads from the dataset: the dataset
+            (:class:`~adnerf.formats.dataset.TalkingHeadDataset`) -> every frame's value
+            ``(N, k)``, or ``None`` where the dataset has none. ``pose``, ``eye`` and ``mouth``
+            have their own sources and leave it unset.
+        rest: The value ``(k,)`` of a frame rendered without one of its own (new audio); empty:
+            such a frame must be given one.
     """
 
     name: str
     width: int
     encode: Callable[[Tensor], Tensor] = _as_is
+    track: Callable[[Any], np.ndarray | None] | None = None
+    rest: tuple[float, ...] = ()
 
 
 SIGNALS: dict[str, Signal] = {}

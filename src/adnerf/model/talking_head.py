@@ -29,8 +29,9 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import asdict, dataclass
-from typing import Literal, Sequence
+from typing import Literal, Mapping, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -47,7 +48,7 @@ from ..fields import (
 )
 from ..pose import HeadPose
 from ..rays import RayBundle
-from .conditions import FrameCondition, signal_width
+from .conditions import SIGNALS, FrameCondition, signal_width
 from ..formats.dataset import SceneMeta
 from .layers import RadianceLayer
 from .mouth_target import MouthProbe
@@ -144,6 +145,11 @@ class ModelConfig:
             the head reads the mouth's opening and width besides the audio code: training gives it
             each frame's landmarks, rendering what the model's read-out of the audio code predicts
             (:meth:`TalkingHead.mouth_from_codes`); 0: it does not (AD-NeRF, and runs made before).
+        head_signals: Further registered signals the head reads, after the audio code, the eye
+            and the mouth (:func:`~adnerf.model.conditions.register_signal`; training reads each
+            frame's value from the dataset through the signal's ``track``, rendering uses its
+            ``rest`` value unless given one). The signals must be registered where the model is
+            built or loaded.
     """
 
     feature_dim: int
@@ -163,6 +169,7 @@ class ModelConfig:
     eye_dim: int = 0
     head_in_front: bool = True
     mouth_dim: int = 0
+    head_signals: tuple[str, ...] = ()
 
     @property
     def layers(self) -> list[LayerConfig]:
@@ -177,9 +184,9 @@ class ModelConfig:
 
     @property
     def head_conditions(self) -> tuple[str, ...]:
-        """What the head layer reads: the audio code, the eye openness when ``eye_dim`` and the
-        mouth when ``mouth_dim``."""
-        return ("audio",) + (("eye",) if self.eye_dim else ()) + (("mouth",) if self.mouth_dim else ())
+        """What the head layer reads: the audio code, the eye openness when ``eye_dim``, the
+        mouth when ``mouth_dim``, then ``head_signals``."""
+        return ("audio",) + (("eye",) if self.eye_dim else ()) + (("mouth",) if self.mouth_dim else ()) + tuple(self.head_signals)
 
     def to_dict(self) -> dict:
         """JSON-serialisable form."""
@@ -198,23 +205,24 @@ class ModelConfig:
             d[key] = FieldConfig.from_dict(d[key])
         for key in ("head_aabb", "torso_aabb"):
             d[key] = tuple(tuple(v) for v in d[key])
-        for key in ("head_samples", "torso_samples"):
+        for key in ("head_samples", "torso_samples", "head_signals"):
             if key in d:
                 d[key] = tuple(d[key])
         return ModelConfig(**d)
 
 
-def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", audio_dim: int = 64, eye: bool = False, mouth: bool = False) -> ModelConfig:
+def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", audio_dim: int = 64, eye: bool = False, mouth: bool = False, signals: Sequence[str] = ()) -> ModelConfig:
     """The model for a dataset.
 
     ``"fast"``: tri-plane grids with small MLPs (the default; what trains on a CPU in minutes).
     ``"paper"``: AD-NeRF's 8x256 positional-encoding MLPs with 64 + 128 samples per ray.
     ``eye``: the head also reads the eye openness (for a dataset with ``eye.npy``).
     ``mouth``: the head also reads the mouth's opening and width (:attr:`ModelConfig.mouth_dim`).
+    ``signals``: further registered signals the head reads (:attr:`ModelConfig.head_signals`).
     """
     eye_dim = signal_width("eye", 0) if eye else 0
     mouth_dim = signal_width("mouth", 0) if mouth else 0
-    head_cond = audio_dim + eye_dim + mouth_dim
+    head_cond = audio_dim + eye_dim + mouth_dim + sum(signal_width(name, audio_dim) for name in signals)
     torso_cond = audio_dim + POSE_CODE_DIM
     if preset == "paper":
         return ModelConfig(
@@ -230,6 +238,7 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
             torso_samples=(64, 128),
             eye_dim=eye_dim,
             mouth_dim=mouth_dim,
+            head_signals=tuple(signals),
         )
     if preset != "fast":
         raise ValueError(f"unknown model preset {preset!r}; choose fast or paper")
@@ -252,6 +261,7 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
         audio_dim=audio_dim,
         eye_dim=eye_dim,
         mouth_dim=mouth_dim,
+        head_signals=tuple(signals),
     )
 
 
@@ -319,17 +329,33 @@ class TalkingHead(nn.Module):
             raise ValueError("this model's head does not read the mouth (mouth_dim 0)")
         return self.mouth_probe(codes)
 
-    def condition(self, code: Tensor, pose: HeadPose, eye: float | Tensor | None = None, mouth: Tensor | None = None, read_pose: HeadPose | None = None) -> FrameCondition:
+    def condition(
+        self, code: Tensor, pose: HeadPose, eye: float | Tensor | None = None, mouth: Tensor | None = None, read_pose: HeadPose | None = None,
+        signals: Mapping[str, Tensor | np.ndarray | float] | None = None,
+    ) -> FrameCondition:  # fmt: skip
         """A frame's condition from its audio code ``(audio_dim,)``, head pose, eye openness (a
         number or ``(1,)``; ``None``: open, 1) and mouth (``(2,)``; ``None``: the read-out of the
         code, :meth:`mouth_from_codes`). A signal the model does not read is left out.
         ``read_pose``: the pose the layers read as their pose signal (the torso's), where it
-        differs from ``pose`` (which moves the head's rays); ``None``: ``pose``."""
+        differs from ``pose`` (which moves the head's rays); ``None``: ``pose``. ``signals``: the
+        frame's values of :attr:`ModelConfig.head_signals` by name (one left out: the signal's
+        ``rest`` value).
+
+        Raises:
+            ValueError: A head signal with no value given and no ``rest`` value.
+        """
         extra = {} if read_pose is None else {"pose": read_pose.code().to(code.dtype)}
         if self.reads_eye:
             extra["eye"] = torch.as_tensor(1.0 if eye is None else eye, dtype=code.dtype, device=code.device).reshape(1)
         if self.reads_mouth:
             extra["mouth"] = (self.mouth_from_codes(code) if mouth is None else torch.as_tensor(mouth, device=code.device)).to(code.dtype).reshape(2)
+        for name in self.config.head_signals:
+            value = None if signals is None else signals.get(name)
+            if value is None:
+                if not SIGNALS[name].rest:
+                    raise ValueError(f"the model reads the {name!r} signal, which has no rest value: give each frame's value")
+                value = SIGNALS[name].rest
+            extra[name] = torch.as_tensor(value, device=code.device).to(code.dtype).reshape(-1)
         return FrameCondition(code, pose, extra)
 
     def fit_feature_scale(self, windows: Tensor) -> None:

@@ -65,7 +65,7 @@ from ..pose import HeadPose
 from ..renderer import RenderOutput
 from ..rng import Shard
 from .blinks import BLINKING, blinks_in
-from .conditions import FrameCondition
+from .conditions import SIGNALS, FrameCondition
 from .distributed import Ranks, init_ranks
 from .masks import BitRows
 from .mouth_target import MouthProbe, mouth_targets, opening_signal
@@ -360,6 +360,15 @@ class Trainer:
         if self.model.reads_eye and ds.eye is None:
             raise RunError(f"the run's head reads the eye openness but {ds.root} has no {DatasetFolder(ds.root).eye.name}")
         self.eye = torch.as_tensor(ds.eye, device=device) if ds.eye is not None and self.model.reads_eye else None
+        # The head's further registered signals (ModelConfig.head_signals): each frame's value,
+        # read from the dataset by the signal's track.
+        self.tracks: dict[str, torch.Tensor] = {}
+        for name in mcfg.head_signals:
+            track = SIGNALS[name].track if name in SIGNALS else None
+            values = None if track is None else track(ds)
+            if values is None:
+                raise RunError(f"the run's head reads the {name!r} signal but {ds.root} gives no value of it (register the signal with a track that reads it)")
+            self.tracks[name] = torch.as_tensor(np.asarray(values, dtype=np.float32).reshape(ds.meta.n_frames, -1), device=device)
         # Frames that teach the eye condition: the blinking ones (drawn more often, blink_frames).
         self.blinking = self.train_frames[torch.as_tensor(ds.eye)[self.train_frames] < BLINKING] if self.eye is not None else self.train_frames[:0]
         self.pixel_index = torch.arange(ds.meta.width * ds.meta.height, device=device)
@@ -608,9 +617,11 @@ class Trainer:
 
     def condition(self, frame: int, code: torch.Tensor, pose, speech: int | None = None) -> FrameCondition:  # noqa: ANN001
         """Frame ``frame``'s condition: its audio code, head pose and (when the head reads them) eye
-        openness and mouth, the mouth of frame ``speech`` when the code is another frame's."""
+        openness, mouth and further signals, the mouth of frame ``speech`` when the code is
+        another frame's."""
         mouth = self.mouth[frame if speech is None else speech] if self.model.reads_mouth else None
-        return self.model.condition(code, pose, None if self.eye is None else self.eye[frame], mouth)
+        signals = {name: values[frame] for name, values in self.tracks.items()} or None
+        return self.model.condition(code, pose, None if self.eye is None else self.eye[frame], mouth, signals=signals)
 
     def mouth_loss(self) -> "tuple[torch.Tensor, float, torch.optim.Optimizer] | None":
         """The mouth-target term of a stage-1 step, ``(loss, lip_weight, the read-out's
