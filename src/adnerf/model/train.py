@@ -20,9 +20,11 @@ frames, composited with the stage-1 head in the model's order: the head in front
 :attr:`~adnerf.model.talking_head.ModelConfig.head_in_front`), or, in AD-NeRF's order, the head
 over the plate as the torso's background.
 
-Training writes a run folder (:mod:`adnerf.model.run_folder` describes it and reads it back), with a
-checkpoint every ``checkpoint_every`` iterations and at the end of each stage. The schedule is
-:class:`adnerf.model.train_config.TrainConfig`.
+The stages are data (:mod:`adnerf.model.stages`: the layer a stage trains, its parameter groups,
+its iterations, the layers it draws frozen); :meth:`Trainer.fit` runs them in order. Training
+writes a run folder (:mod:`adnerf.model.run_folder` describes it and reads it back), with a
+checkpoint (each stage's step and optimizer under its name) every ``checkpoint_every`` iterations
+and at the end of each stage. The schedule is :class:`adnerf.model.train_config.TrainConfig`.
 """
 
 from __future__ import annotations
@@ -803,7 +805,6 @@ class Trainer:
         part(batch) -> (render, target, mask, opacity-held rays))``."""
         return {"head": (self.head_rays, self.head_part), "torso": (self.torso_rays, self.torso_batch_part)}
 
-    # ---- stages
     def run_stage(self, stage: Stage, max_steps: int | None) -> None:
         """Train ``stage`` from its finished iterations to its end, or ``max_steps`` of it.
 
