@@ -27,9 +27,12 @@ def test_gpu_check_steps_run_on_the_cpu(tmp_path: Path) -> None:
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
     doc = json.loads(out.read_text())
-    assert doc["device"] == "cpu" and {"render", "steps", "real"} <= doc.keys()
-    for step in ("render", "steps", "real"):
+    assert doc["device"] == "cpu" and {"render", "stream", "steps", "real"} <= doc.keys()
+    for step in ("render", "stream", "steps", "real"):
         assert "error" not in doc[step], (step, doc[step])
+    stream = {row["mode"]: row for row in doc["stream"]["rows"]}
+    assert set(stream) == {"offline look-ahead", "causal"} and stream["causal"]["causal"] and not stream["offline look-ahead"]["causal"]
+    assert stream["causal"]["lookahead_s"] < stream["offline look-ahead"]["lookahead_s"] and all(r["frames"] == 30 and r["frames_per_s"] > 0 for r in stream.values())
     assert doc["render"]["head_torso_chunk262144_fps"] > 0 and doc["render"]["head_chunk262144_fps"] > 0
     assert [(row["rays"], row["frames"], row["adam"]) for row in doc["steps"]["rows"]] == [(32, 1, "trainer"), (64, 1, "trainer"), (64, 2, "trainer"), (32, 1, "foreach")]
     real = doc["real"]["run"]

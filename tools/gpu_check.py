@@ -14,19 +14,22 @@ what it measured), each with its own time limit:
 3. ``render``: frames per second of the demo's trained model at 450x450 (head and torso, and head
    alone), steady state, in whole-frame batches of 262144 rays (the GPU default of
    :func:`adnerf.model.talking_head.render_chunk`).
-4. ``steps``: seconds per stage-1 training iteration on the demo's data against the rays per
+4. ``stream``: ``adnerf stream`` of the demo's run on its own speech, on the device, with the
+   offline render's look-ahead and with ``--causal``: look-ahead, first-frame latency, frames
+   per second and the real-time factor (a file is pushed as fast as it is read).
+5. ``steps``: seconds per stage-1 training iteration on the demo's data against the rays per
    iteration (1024, the CPU's default, to 8192), drawn from one frame and from ``rays / 1024``
    frames (rendered in one call), timed over ``--steps-counts`` iterations after a warm-up
    (empty-space skipping is on after a tenth of them).
-5. ``demo_scaled``: the demo's scene trained again with ``TrainConfig().scaled(k)`` for each
+6. ``demo_scaled``: the demo's scene trained again with ``TrainConfig().scaled(k)`` for each
    ``k`` of ``--demo-scales`` (``k`` times the rays, from ``k`` times the frames, in ``k`` times
    fewer steps): time and bars.
-6. ``real``: with ``--real DATA`` (a preprocessed real clip), a run trained on the GPU with
+7. ``real``: with ``--real DATA`` (a preprocessed real clip), a run trained on the GPU with
    ``TrainConfig(HEAD, TORSO).scaled(K)`` (``--real-iters HEAD,TORSO``, ``--real-scale K``), its
    training time and its held-out metrics without the landmark ones (``adnerf evaluate
    --no-landmarks``); the run stays in the scratch folder for the landmark metrics elsewhere.
-7. ``bench_render``: ``adnerf bench render --device cuda`` (quadrature error and time per Mray).
-8. ``fields``: a shortened ``adnerf bench fields --device cuda`` (held-out PSNR against time).
+8. ``bench_render``: ``adnerf bench render --device cuda`` (quadrature error and time per Mray).
+9. ``fields``: a shortened ``adnerf bench fields --device cuda`` (held-out PSNR against time).
 
 The JSON records the device name, torch and CUDA versions and, per step, its figures or the error.
 """
@@ -42,7 +45,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-STEPS = ("tests", "demo", "render", "steps", "demo_scaled", "real", "bench_render", "fields")
+STEPS = ("tests", "demo", "render", "stream", "steps", "demo_scaled", "real", "bench_render", "fields")
 
 
 def _run(cmd: list[str], limit: float) -> tuple[int, str, float]:
@@ -148,6 +151,19 @@ def step_render(args: argparse.Namespace) -> dict:
     if args.device == "cuda":
         result["max_memory_gb"] = torch.cuda.max_memory_allocated() / 1e9
     return result
+
+
+def step_stream(args: argparse.Namespace) -> dict:
+    folder = Path(args.work) / "demo"
+    rows = []
+    for mode, extra in (("offline look-ahead", []), ("causal", ["--causal"])):
+        cmd = [sys.executable, "-m", "adnerf.cli", "stream", str(folder / "run"), "--audio", str(folder / "data" / "audio.wav"), "-o", str(Path(args.work) / "stream.mp4"), "--overwrite", "--device", args.device, "--json", *extra]
+        code, out, seconds = _run(cmd, args.limit)
+        if code != 0:
+            return {"exit_code": code, "mode": mode, "output_tail": out[-2000:]}
+        summary = _json_lines(out)[-1]
+        rows.append({"mode": mode, "seconds": seconds, **summary, "frames_per_s": summary["frames"] / max(summary["wall_seconds"], 1e-9)})
+    return {"rows": rows}
 
 
 def step_steps(args: argparse.Namespace) -> dict:
