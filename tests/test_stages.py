@@ -62,6 +62,8 @@ def test_fit_runs_stages_in_order_within_the_budget_and_waits_for_frozen_layers(
     ds = load_dataset(tiny, truth=False)
     cfg = TrainConfig(head_iters=3, torso_iters=2, rays=64)
     tr = Trainer(tmp_path, ds, model_config(ds.meta), cfg, "cpu", False)
+    with pytest.raises(ValueError, match="not one of this trainer's"):
+        tr.fit([Stage("neck", "torso", 2, ())])
     with pytest.raises(RunError, match="needs a finished head stage"):
         tr.fit([tr.stages["torso"]])  # draws the head frozen before it was trained
     tr.fit(max_steps=4)  # three head steps, then one torso step

@@ -849,10 +849,18 @@ class Trainer:
         self._loop(stage, step_fn, max_steps)
 
     def fit(self, stages: Sequence[Stage] | None = None, max_steps: int | None = None) -> None:
-        """Run stages in order (default: all of the schedule's), ``max_steps`` iterations in all at
-        most; a finished stage is passed over."""
+        """Run stages of this trainer in order (default: all of them), ``max_steps`` iterations
+        in all at most; a finished stage is passed over.
+
+        Raises:
+            ValueError: A stage the trainer was not made with (it has no optimizer).
+        """
+        stages = list(self.stages.values()) if stages is None else list(stages)
+        unknown = [s.name for s in stages if self.stages.get(s.name) != s]
+        if unknown:
+            raise ValueError(f"stage {unknown[0]!r} is not one of this trainer's ({', '.join(self.stages)}); pass it to Trainer(stages=...)")
         budget = max_steps
-        for stage in self.stages.values() if stages is None else stages:
+        for stage in stages:
             if budget is not None and budget <= 0:
                 break
             before = self.steps[stage.name]
