@@ -35,7 +35,6 @@ EYE_FREQUENCIES = 4
 MOUTH_FREQUENCIES = 3
 
 
-
 def _as_is(value: Tensor) -> Tensor:
     return value
 

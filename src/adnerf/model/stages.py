@@ -15,9 +15,11 @@ schedules.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Mapping, Sequence
 
 from torch import nn
 
+from .run_folder import RunError
 from .talking_head import TalkingHead
 from .train_config import TrainConfig
 
@@ -88,3 +90,21 @@ def group_parameters(model: TalkingHead, group: ParamGroup) -> list[nn.Parameter
         else:
             raise ValueError(f"the model has no layer {name!r}; it has {', '.join(model.layers)} and {AUDIO!r}")
     return params
+
+
+def check_frozen_trained(stage: Stage, stages: Sequence[Stage], steps: Mapping[str, int], before: Sequence[Stage] = ()) -> None:
+    """Refuse ``stage`` while a stage of ``stages`` that trains a layer it draws frozen has not
+    finished (``steps``: finished iterations by stage name); a stage in ``before`` runs first, so
+    it does not count.
+
+    Raises:
+        RunError: Which stage waits for which, and the command that finishes it.
+    """
+    for k, other in enumerate(stages):
+        done = steps.get(other.name, 0)
+        if other.layer in stage.frozen and other not in before and done < other.iters:
+            position = next((j for j, s in enumerate(stages) if s.name == stage.name), len(stages))
+            raise RunError(
+                f"stage {position + 1} ({stage.name}) needs a finished stage {k + 1} ({done}/{other.iters} {other.name} iterations); "
+                f"run --stage {other.name} (with --resume) first"
+            )

@@ -87,7 +87,7 @@ from .run_folder import (
     stored_config,
     write_run,
 )
-from .stages import Stage, default_stages, group_parameters
+from .stages import Stage, check_frozen_trained, default_stages, group_parameters
 from .talking_head import (
     ModelConfig,
     TalkingHead,
@@ -209,7 +209,7 @@ def near_torso(is_torso: torch.Tensor, height: int, width: int, reach: int) -> t
     return F.max_pool2d(along, (2 * reach + 1, 1), stride=1, padding=(reach, 0)).reshape(len(is_torso), -1) > 0
 
 
-def behind_chin(is_head: torch.Tensor, is_torso: torch.Tensor, height: int, width: int, band: float = NECK_BAND) -> torch.Tensor:
+def behind_chin(is_head: torch.Tensor, is_torso: torch.Tensor, height: int, width: int, band: float = NECK_BAND, reach: int | None = None) -> torch.Tensor:
     """The head pixels where a torso drawn behind the head may be opaque: those within ``r``
     pixels (a square around each) of the frame's torso pixels, ``r`` = ``band`` times the
     median height in rows of the frames' head labels (at least 1 pixel; :func:`neck_reach`).
@@ -224,11 +224,13 @@ def behind_chin(is_head: torch.Tensor, is_torso: torch.Tensor, height: int, widt
         height: ``H``.
         width: ``W``.
         band: The reach as a fraction of the head's height.
+        reach: The reach in pixels, where it was measured on more frames than these (the
+            trainer's, on the whole clip); ``None``: :func:`neck_reach` of these frames with ``band``.
 
     Returns:
         ``(N, H*W)`` bool, a subset of ``is_head``.
     """
-    reach = neck_reach(head_heights(is_head, height), band)
+    reach = neck_reach(head_heights(is_head, height), band) if reach is None else reach
     near = torch.zeros_like(is_head)
     for start in range(0, len(is_torso), 64):  # frames at a time: a float copy of all at once is large
         near[start : start + 64] = near_torso(is_torso[start : start + 64], height, width, reach)
@@ -366,7 +368,7 @@ class Trainer:
         # read from the dataset by the signal's track.
         self.tracks: dict[str, torch.Tensor] = {}
         for name in mcfg.head_signals:
-            track = SIGNALS[name].track if name in SIGNALS else None
+            track = SIGNALS[name].track  # registered: the model was built with it
             values = None if track is None else track(ds)
             if values is None:
                 raise RunError(f"the run's head reads the {name!r} signal but {ds.root} gives no value of it (register the signal with a track that reads it)")
@@ -463,9 +465,8 @@ class Trainer:
         drawn = torch.unique(torch.as_tensor(frame).reshape(-1).cpu())
         todo = drawn[~self.reach_made[drawn]]
         if todo.numel():
-            h, w = self.ds.meta.height, self.ds.meta.width
             labels = self.labels[todo.to(self.labels.device)]
-            reach.set(todo.to(reach.bytes.device), near_torso(labels == LABEL_TORSO, h, w, self.neck_reach_px) & (labels == LABEL_HEAD))
+            reach.set(todo.to(reach.bytes.device), behind_chin(labels == LABEL_HEAD, labels == LABEL_TORSO, self.ds.meta.height, self.ds.meta.width, reach=self.neck_reach_px))
             self.reach_made[todo] = True
         return reach.at(frame, pix)
 
@@ -817,12 +818,7 @@ class Trainer:
             RunError: A layer the stage draws frozen is not finished training.
         """
         tcfg = self.tcfg
-        for other in self.stages.values():
-            if other.layer in stage.frozen and self.steps[other.name] < other.iters:
-                raise RunError(
-                    f"the {stage.name} stage needs a finished {other.name} stage (stage {list(self.stages).index(other.name) + 1}; "
-                    f"{self.steps[other.name]}/{other.iters} {other.name} iterations); run --stage {other.name} first"
-                )
+        check_frozen_trained(stage, list(self.stages.values()), self.steps)
         rays_of, part_of = self.layer_steps[stage.layer]
         if stage.trains_audio:
             codes_of = self.codes
@@ -954,11 +950,9 @@ def train(
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")
     stages = default_stages(tcfg)
     chosen = [s for s in stages if stage in ("all", s.name)]
-    for k, s in enumerate(stages):  # a stage drawing a layer frozen needs the stage that trains it finished, or run first
-        for j, other in enumerate(stages):
-            done = stage_step(ckpt, other.name) if ckpt else 0
-            if s in chosen and other.layer in s.frozen and other not in chosen and done < other.iters:
-                raise RunError(f"stage {k + 1} needs a finished stage {j + 1} ({done}/{other.iters} {other.name} iterations); run --stage {other.name} (with --resume) first")
+    done = {s.name: stage_step(ckpt, s.name) if ckpt else 0 for s in stages}
+    for k, s in enumerate(chosen):  # a stage drawing a layer frozen needs the stage that trains it finished, or run first
+        check_frozen_trained(s, stages, done, before=chosen[:k])
     if (tcfg.rays // tcfg.frames) % ranks.world:
         raise RunError(f"{ranks.world} processes must split the {tcfg.rays // tcfg.frames} rays of each frame in a batch evenly; choose rays divisible by {ranks.world * tcfg.frames}")
     # One writer per run folder: a second training of it (another terminal, a restarted job)
