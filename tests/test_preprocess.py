@@ -345,6 +345,71 @@ def test_rigid_region_stays_above_the_fraction_and_the_landmark_limit() -> None:
     np.testing.assert_array_equal(rigid_region(labels, 0.5, 0.0, limit=float("nan")), free)
 
 
+def test_rigid_region_erodes_its_box_as_the_whole_frame_would() -> None:
+    """The region is eroded only in the box its kept rows can reach; the answer must be the
+    whole frame's erosion, also where the head touches the frame's edges (OpenCV treats the
+    outside as set there) and where the head below the cut holds up the rows above it."""
+    def whole_frame(labels: np.ndarray, fraction: float, margin: float) -> np.ndarray:
+        head = labels == LABEL_HEAD
+        rows, cols = np.flatnonzero(head.any(1)), np.flatnonzero(head.any(0))
+        r = int(round(margin * (cols[-1] - cols[0] + 1)))
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        head = cv2.erode(head.astype(np.uint8), kernel) > 0
+        head[max(0, int(np.ceil(rows[0] + fraction * (rows[-1] - rows[0] + 1)))) :] = False
+        return head
+
+    rng = np.random.default_rng(0)
+    for centre in ((60, 70), (5, 70), (60, 3), (118, 60), (60, 157)):  # inside, at the top, left, bottom, right edge
+        labels = np.zeros((120, 160), np.uint8)
+        cv2.ellipse(labels, centre, (35, 45), float(rng.uniform(-20, 20)), 0, 360, LABEL_HEAD, -1)
+        labels[rng.random(labels.shape) < 0.02] = 0  # holes: the erosion opens them
+        for fraction in (0.3, 0.62, 1.0):
+            np.testing.assert_array_equal(rigid_region(labels, fraction, 0.1), whole_frame(labels, fraction, 0.1))
+
+
+def test_lucas_kanade_on_the_points_crop_matches_the_whole_frames() -> None:
+    """Lucas-Kanade on the part of the frames around the points: the whole frames' positions up
+    to rounding and the same status, and the known motion of the image."""
+    from skimage import data
+
+    from adnerf.preprocess.tracking import _lucas_kanade
+
+    img = cv2.cvtColor(data.astronaut(), cv2.COLOR_RGB2GRAY)  # 512 x 512
+    M = np.float32([[1, 0, 1.3], [0, 1, -0.6]])
+    moved = cv2.warpAffine(img, M, (512, 512), flags=cv2.INTER_LINEAR)
+    p0 = cv2.goodFeaturesToTrack(img[60:220, 180:340], 40, 0.01, 6).reshape(-1, 2) + np.float32([180, 60])
+    guess = p0 + np.float32([1.0, 0.0])
+    win, crit = (15, 15), (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    whole, st_whole, _ = cv2.calcOpticalFlowPyrLK(img, moved, p0.reshape(-1, 1, 2), guess.reshape(-1, 1, 2).copy(), winSize=win, maxLevel=1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, criteria=crit)
+    got, st = _lucas_kanade(img, moved, p0, guess, win, crit)
+    np.testing.assert_array_equal(st, st_whole)
+    assert st.all()
+    np.testing.assert_allclose(got.reshape(-1, 2), whole.reshape(-1, 2), atol=1e-2)
+    assert np.median(np.abs(got.reshape(-1, 2) - p0 - [1.3, -0.6])) < 0.05
+
+
+def test_flows_on_the_heads_box_track_as_well_as_on_the_whole_frames() -> None:
+    """The dense flows are computed on the box of the two frames' rigid regions (a small head in
+    a large frame here). Tracks chained by flow alone (no re-anchoring) then follow the face's
+    known motion as closely as with flows on the whole frames; a flow read at the whole frame's
+    coordinates would carry them pixels away."""
+    frames, labels, _, affines = _astronaut_clip(256, 40)
+    A = np.concatenate([affines, np.tile([[[0.0, 0.0, 1.0]]], (len(affines), 1, 1))], 1)
+
+    def error(margin: float | None) -> tuple[int, float]:
+        tr = track_points(frames, labels, TrackConfig(rigid_fraction=1.0, anchor_window=0, flow_margin=margin))
+        errs = []
+        for j, s in enumerate(tr.seed_frame):
+            seed = np.append(tr.uv[s, j] - 0.5, 1.0)  # OpenCV coordinates
+            for i in np.flatnonzero(tr.observed[:, j]):
+                errs.append(np.linalg.norm(tr.uv[i, j] - (A[i] @ np.linalg.solve(A[s], seed))[:2] - 0.5))
+        return len(errs), float(np.median(errs))
+
+    (n_box, box), (n_whole, whole) = error(0.15), error(None)
+    assert n_box > 0.9 * n_whole > 2000
+    assert box < 1.1 * whole and whole < 0.6
+
+
 def test_person_hull_fills_down_from_the_first_moving_pixel() -> None:
     moving = np.zeros((10, 6), bool)
     moving[3, 2] = moving[6, 4] = True
@@ -487,13 +552,12 @@ def test_classical_parser_cuts_a_long_clip_about_once_a_frame(monkeypatch: pytes
     assert (few == every).mean() > 0.99
 
 
-def test_astronaut_in_plane_motion_is_recovered() -> None:
-    """Real photographic texture: the astronaut's face moved by known in-plane similarity
-    transforms over a static background; the recovered roll and image translation match."""
+def _astronaut_clip(size: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The astronaut's face (64 px) turned and moved in the image plane over a static background
+    of ``size`` px: ``(frames (n, size, size, 3), labels, angles (n,) degrees, affines (n, 2, 3))``."""
     from skimage import data
 
     face = cv2.resize(data.astronaut()[20:220, 130:330], (64, 64), interpolation=cv2.INTER_AREA)
-    size, n = 128, 30
     bg = (synth_background(size) * 255).astype(np.uint8)
     angles = 8.0 * np.sin(np.linspace(0, 2 * np.pi, n))  # degrees
     shifts = np.stack([6.0 * np.sin(np.linspace(0, np.pi, n)), 3.0 * np.cos(np.linspace(0, np.pi, n))], 1)
@@ -508,7 +572,14 @@ def test_astronaut_in_plane_motion_is_recovered() -> None:
         m = cv2.warpAffine(mask0, M, (size, size), flags=cv2.INTER_NEAREST).astype(bool)
         frames.append(np.where(m[..., None], img, bg))
         labels.append(np.where(m, LABEL_HEAD, 0).astype(np.uint8))
-    frames, labels = np.stack(frames), np.stack(labels)
+    return np.stack(frames), np.stack(labels), angles, np.stack(affines)
+
+
+def test_astronaut_in_plane_motion_is_recovered() -> None:
+    """Real photographic texture: the astronaut's face moved by known in-plane similarity
+    transforms over a static background; the recovered roll and image translation match."""
+    size = 128
+    frames, labels, angles, affines = _astronaut_clip(size, 30)
     f = 1.33 * size
     tracks = track_points(frames, labels, TrackConfig(rigid_fraction=1.0, edge_margin=0.1))
     est = estimate_head_poses(tracks, labels, (f, f, size / 2, size / 2), reference=0)

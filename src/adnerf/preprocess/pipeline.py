@@ -641,7 +641,7 @@ def _pose_segment(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray 
     """Tracks, bundle adjustment and re-observation passes on one segment of the clip
     (``landmarks`` ``(n, 68, 2)`` and ``detected`` ``(n,)``: the face step's, or both ``None``)."""
     from .headpose import estimate_head_poses
-    from .tracking import TrackConfig, Tracks, extend_tracks, track_points
+    from .tracking import TrackConfig, Tracks, extend_tracks, rigid_regions, track_points
 
     track_cfg = TrackConfig(flow=config.flow)
     # The points are tracked at a working size (config.track_size): the flows' and Lucas-Kanade's
@@ -660,7 +660,8 @@ def _pose_segment(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray 
 
     # With landmarks, the rigid region never reaches below the nose base.
     limits = None if landmarks is None else landmarks[:, NOSE_BASE, 1] * scale[1]
-    tracks = track_points(small, small_labels, track_cfg, progress=lambda d, t: bar(f"pose: tracks{name}", d, t), limits=limits)
+    regions = rigid_regions(small_labels, track_cfg, limits)  # made once for the tracks and every pass
+    tracks = track_points(small, small_labels, track_cfg, progress=lambda d, t: bar(f"pose: tracks{name}", d, t), limits=limits, regions=regions)
     rigid = None if landmarks is None or detected is None else pose_landmarks(landmarks, detected)
     kw = dict(head_width=config.head_width, shape_sigma=config.shape_sigma, landmarks=rigid, landmark_weight=config.pose_landmarks)
     est = estimate_head_poses(full(tracks), labels, K, **kw)
@@ -671,7 +672,7 @@ def _pose_segment(frames: np.ndarray, labels: np.ndarray, landmarks: np.ndarray 
         def predict(i: int, idx: np.ndarray) -> np.ndarray:
             return project_points(X[idx] @ P[i, :3, :3].T + P[i, :3, 3], K) * scale
 
-        tracks = extend_tracks(small, small_labels, tracks, predict, track_cfg, reach=len(frames), limits=limits)
+        tracks = extend_tracks(small, small_labels, tracks, predict, track_cfg, reach=len(frames), limits=limits, regions=regions)
         est = estimate_head_poses(full(tracks), labels, K, **kw, initial=est)  # from the last pass's solution
         bar(f"pose: adjust{name}", k + 1, config.extend_passes)
     return est, full(tracks), chained_obs

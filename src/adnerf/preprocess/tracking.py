@@ -25,7 +25,7 @@ import numpy as np
 from ..formats.dataset import LABEL_HEAD
 from ..threads import in_threads
 
-__all__ = ["FLOWS", "TrackConfig", "Tracks", "dense_flow", "rigid_region", "track_points", "extend_tracks"]
+__all__ = ["FLOWS", "TrackConfig", "Tracks", "dense_flow", "rigid_region", "rigid_regions", "track_points", "extend_tracks"]
 
 FLOWS = ("dis", "deepflow")
 
@@ -69,13 +69,21 @@ def rigid_region(labels: np.ndarray, rigid_fraction: float = 0.62, edge_margin: 
         return head
     cols = np.flatnonzero(head.any(0))
     erode = int(round(edge_margin * (cols[-1] - cols[0] + 1)))
-    if erode > 0:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1, 2 * erode + 1))
-        head = cv2.erode(head.astype(np.uint8), kernel) > 0
     cut = rows[0] + rigid_fraction * (rows[-1] - rows[0] + 1)
     if limit is not None and np.isfinite(limit):
         cut = min(cut, limit - 0.5)  # rows whose centre lies above the limit
-    head[max(0, int(np.ceil(cut))) :] = False
+    stop = max(0, int(np.ceil(cut)))
+    head[stop:] = False
+    if erode > 0 and stop > rows[0]:
+        # Erode only the box the kept rows can reach: a pixel's erosion reads the pixels within
+        # `erode` of it, so the box grows by that much (clipped to the frame, where OpenCV's
+        # erosion treats the outside as set, as it does for the whole frame).
+        h, w = head.shape
+        y0, y1 = max(0, rows[0] - erode), min(h, stop + erode)
+        x0, x1 = max(0, cols[0] - erode), min(w, cols[-1] + 1 + erode)
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1, 2 * erode + 1))
+        box = cv2.erode(np.ascontiguousarray(labels[y0:y1, x0:x1] == LABEL_HEAD, dtype=np.uint8), kernel) > 0
+        head[y0:stop, x0:x1] = box[: stop - y0]
     return head
 
 
@@ -97,6 +105,9 @@ class TrackConfig:
             0 disables it.
         max_anchor_shift: A refinement that moves a point further than this (pixels) from the
             flow's position ends the track instead.
+        flow_margin: The dense flow of a frame pair is computed on the box of the two frames'
+            rigid regions (where every point it carries lies), grown on each side by this
+            fraction of the box's larger side and 16 pixels; ``None``: on the whole frames.
     """
 
     flow: str = "dis"
@@ -110,6 +121,7 @@ class TrackConfig:
     min_distance: float = 0.05
     anchor_window: int = 15
     max_anchor_shift: float = 2.0
+    flow_margin: float | None = 0.15
 
 
 @dataclass
@@ -136,6 +148,33 @@ class Tracks:
         return self.observed.sum(0)
 
 
+def rigid_regions(labels: np.ndarray, config: TrackConfig = TrackConfig(), limits: np.ndarray | None = None) -> np.ndarray:
+    """:func:`rigid_region` of every frame, ``(N, H, W)`` bool, made once for the passes that
+    read them (:func:`track_points` and each :func:`extend_tracks`).
+
+    Args:
+        labels: ``(N, H, W)`` uint8 parsing.
+        config: The region's settings (``rigid_fraction``, ``edge_margin``).
+        limits: ``(N,)`` rows each frame's region stays above, or ``None``.
+    """
+    out = np.empty(labels.shape, dtype=bool)
+    for i, region in enumerate(in_threads(lambda i: rigid_region(labels[i], config.rigid_fraction, config.edge_margin, _limit(limits, i)), range(len(labels)))):
+        out[i] = region
+    return out
+
+
+def _flow_box(region: np.ndarray, margin: float | None) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: the box of ``region`` grown by ``margin`` (see
+    :attr:`TrackConfig.flow_margin`), within the frame; the whole frame for ``None`` or an
+    empty region."""
+    h, w = region.shape
+    rows, cols = np.flatnonzero(region.any(1)), np.flatnonzero(region.any(0))
+    if margin is None or len(rows) == 0:
+        return 0, 0, w, h
+    grow = 16 + int(np.ceil(margin * max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1)))
+    return max(0, cols[0] - grow), max(0, rows[0] - grow), min(w, cols[-1] + 1 + grow), min(h, rows[-1] + 1 + grow)
+
+
 def _sample(flow: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Bilinear sample of a flow field at centre-convention points ``(n, 2)``."""
     map_xy = (pts - 0.5).astype(np.float32).reshape(-1, 1, 2)
@@ -157,7 +196,12 @@ def _limit(limits: np.ndarray | None, i: int) -> float | None:
 
 
 def track_points(
-    frames: np.ndarray, labels: np.ndarray, config: TrackConfig = TrackConfig(), progress: Callable[[int, int], None] | None = None, limits: np.ndarray | None = None
+    frames: np.ndarray,
+    labels: np.ndarray,
+    config: TrackConfig = TrackConfig(),
+    progress: Callable[[int, int], None] | None = None,
+    limits: np.ndarray | None = None,
+    regions: np.ndarray | None = None,
 ) -> Tracks:
     """Track points on the head's rigid region through a clip.
 
@@ -167,6 +211,8 @@ def track_points(
         config: Tracking settings.
         progress: Called as ``progress(done, total)`` per frame pair.
         limits: ``(N,)`` rows the rigid region stays above per frame (see :func:`rigid_region`).
+        regions: ``(N, H, W)`` bool rigid regions already made by :func:`rigid_regions` with
+            these labels, settings and limits; ``None``: made here.
 
     Returns:
         :class:`Tracks` with tracks shorter than ``config.min_length`` removed.
@@ -174,11 +220,13 @@ def track_points(
     dense_flow(config.flow)  # an unknown method fails here, before any work
     n = len(frames)
     gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
+    if regions is None:
+        regions = rigid_regions(labels, config, limits)
     paths: list[list[tuple[int, float, float]]] = []
     alive: list[int] = []
 
     def seed(i: int) -> None:
-        region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin, _limit(limits, i))
+        region = regions[i]
         cols = np.flatnonzero(region.any(0))
         if len(cols) == 0:
             return
@@ -197,21 +245,23 @@ def track_points(
 
     local = threading.local()
 
-    def pair(i: int) -> tuple[np.ndarray, np.ndarray]:  # a flow object per thread: they keep state
+    def pair(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # a flow object per thread: they keep state
         if not hasattr(local, "flow"):
             local.flow = dense_flow(config.flow)
-        return local.flow(gray[i], gray[i + 1]), local.flow(gray[i + 1], gray[i])
+        x0, y0, x1, y1 = _flow_box(regions[i] | regions[i + 1], config.flow_margin)
+        a, b = np.ascontiguousarray(gray[i][y0:y1, x0:x1]), np.ascontiguousarray(gray[i + 1][y0:y1, x0:x1])
+        return local.flow(a, b), local.flow(b, a), np.array([x0, y0], np.float64)
 
     flows = in_threads(pair, range(n - 1))  # computed ahead, side by side, while the tracks follow
     seed(0)
     for i in range(n - 1):
-        fwd, bwd = next(flows)
+        fwd, bwd, o = next(flows)
         if alive:
             pts = np.array([paths[p][-1][1:] for p in alive])
-            nxt = pts + _sample(fwd, pts)
-            back = nxt + _sample(bwd, nxt)
+            nxt = pts + _sample(fwd, pts - o)
+            back = nxt + _sample(bwd, nxt - o)
             ok = np.linalg.norm(back - pts, axis=1) < config.max_fb_error
-            ok &= _inside(rigid_region(labels[i + 1], config.rigid_fraction, config.edge_margin, _limit(limits, i + 1)), nxt)
+            ok &= _inside(regions[i + 1], nxt)
             ok &= np.array([len(paths[p]) < config.max_length for p in alive])
             if config.anchor_window > 0:
                 nxt, ok = _anchor(gray, paths, alive, nxt, ok, i + 1, config)
@@ -233,6 +283,40 @@ def track_points(
     return Tracks(uv=uv, seed_frame=np.array([p[0][0] for p in paths], dtype=int))
 
 
+def _lucas_kanade(prev: np.ndarray, nxt: np.ndarray, p0: np.ndarray, guess: np.ndarray, win: tuple[int, int], criteria: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Pyramidal Lucas-Kanade (two levels) of ``p0`` in ``prev`` to ``nxt``, started at ``guess``.
+
+    OpenCV builds the pyramids and derivatives of both whole images at every call, which costs far
+    more than following a few dozen points; the call runs on the part of both images that holds
+    the points and ``guess`` with a margin of several windows (starting at an even pixel, so the
+    coarse level averages the same pixels). The answer is the whole frames' up to rounding (the
+    points' coordinates are smaller numbers; about 1e-3 px).
+
+    Args:
+        prev, nxt: ``(H, W)`` uint8 grey images.
+        p0, guess: ``(k, 2)`` float32 OpenCV pixel coordinates (centre of pixel ``(x, y)`` at ``(x, y)``).
+        win: Window size.
+        criteria: OpenCV's termination criteria.
+
+    Returns:
+        ``(positions (k, 1, 2) float32, status (k, 1) uint8)`` as :func:`cv2.calcOpticalFlowPyrLK`.
+    """
+    p0, guess = p0.reshape(-1, 2), guess.reshape(-1, 2)
+    pts = np.concatenate([p0, guess])
+    h, w = prev.shape
+    margin = 3 * max(win) + 8
+    x0 = max(0, int(np.floor(pts[:, 0].min())) - margin) & ~1
+    y0 = max(0, int(np.floor(pts[:, 1].min())) - margin) & ~1
+    x1 = min(w, int(np.ceil(pts[:, 0].max())) + margin + 1)
+    y1 = min(h, int(np.ceil(pts[:, 1].max())) + margin + 1)
+    o = np.array([x0, y0], np.float32)
+    got, status, _ = cv2.calcOpticalFlowPyrLK(
+        np.ascontiguousarray(prev[y0:y1, x0:x1]), np.ascontiguousarray(nxt[y0:y1, x0:x1]), (p0 - o).reshape(-1, 1, 2), (guess - o).reshape(-1, 1, 2),
+        winSize=win, maxLevel=1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, criteria=criteria,
+    )  # fmt: skip
+    return got + o, status
+
+
 def _anchor(gray: list[np.ndarray], paths: list, alive: list[int], nxt: np.ndarray, ok: np.ndarray, frame: int, config: TrackConfig) -> tuple[np.ndarray, np.ndarray]:
     """Refine flow-carried points by Lucas-Kanade from each track's seed frame (drift removal)."""
     nxt, ok = nxt.copy(), ok.copy()
@@ -244,10 +328,7 @@ def _anchor(gray: list[np.ndarray], paths: list, alive: list[int], nxt: np.ndarr
         p0 = np.array([paths[alive[k]][0][1:] for k in sel], np.float32) - 0.5
         guess = (nxt[sel] - 0.5).astype(np.float32)
         win = (config.anchor_window, config.anchor_window)
-        got, status, _ = cv2.calcOpticalFlowPyrLK(
-            gray[s], gray[frame], p0.reshape(-1, 1, 2), guess.reshape(-1, 1, 2).copy(), winSize=win, maxLevel=1,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
-        )
+        got, status = _lucas_kanade(gray[s], gray[frame], p0, guess, win, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
         got = got.reshape(-1, 2).astype(np.float64) + 0.5
         good = (status.reshape(-1) == 1) & (np.linalg.norm(got - nxt[sel], axis=1) < config.max_anchor_shift)
         nxt[sel[good]] = got[good]
@@ -263,6 +344,7 @@ def extend_tracks(
     config: TrackConfig = TrackConfig(),
     reach: int = 100,
     limits: np.ndarray | None = None,
+    regions: np.ndarray | None = None,
 ) -> Tracks:
     """Re-observe every track in the frames around it, matched directly against its seed frame.
 
@@ -281,6 +363,8 @@ def extend_tracks(
         config: Window, thresholds and region settings.
         reach: Frames before and after the seed frame that are searched.
         limits: ``(N,)`` rows the rigid region stays above per frame (see :func:`rigid_region`).
+        regions: ``(N, H, W)`` bool rigid regions already made by :func:`rigid_regions` with
+            these labels, settings and limits; ``None``: made here, frame by frame.
 
     Returns:
         New :class:`Tracks` with the added observations.
@@ -292,7 +376,7 @@ def extend_tracks(
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
     def observe(i: int) -> list[tuple[np.ndarray, np.ndarray]]:
         """Frame ``i``'s new observations: (track indices, positions) per seed frame."""
-        region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin, _limit(limits, i))
+        region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin, _limit(limits, i)) if regions is None else regions[i]
         near = np.flatnonzero((np.abs(tracks.seed_frame - i) <= reach) & ~np.isfinite(uv[i, :, 0]))
         if len(near) == 0:
             return []
@@ -303,8 +387,8 @@ def extend_tracks(
             sel = near[inside][tracks.seed_frame[near[inside]] == s]
             g = guess[np.searchsorted(near, sel)]
             p0 = (tracks.uv[s, sel] - 0.5).astype(np.float32).reshape(-1, 1, 2)
-            got, st, _ = cv2.calcOpticalFlowPyrLK(gray[s], gray[i], p0, (g - 0.5).astype(np.float32).reshape(-1, 1, 2), winSize=win, maxLevel=1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, criteria=criteria)
-            back, st2, _ = cv2.calcOpticalFlowPyrLK(gray[i], gray[s], got, p0.copy(), winSize=win, maxLevel=1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, criteria=criteria)
+            got, st = _lucas_kanade(gray[s], gray[i], p0, (g - 0.5).astype(np.float32), win, criteria)
+            back, st2 = _lucas_kanade(gray[i], gray[s], got, p0, win, criteria)
             got = got.reshape(-1, 2).astype(np.float64) + 0.5
             ok = (st.reshape(-1) == 1) & (st2.reshape(-1) == 1)
             ok &= np.linalg.norm(back.reshape(-1, 2) + 0.5 - tracks.uv[s, sel], axis=1) < config.max_fb_error
