@@ -463,7 +463,8 @@ def long_clip_line() -> str:
     r = max(d["rows"], key=lambda row: row["seconds"])
     return (f"{num(r['seconds'] / 60, 0)} minutes of 512 px footage ({r['frames']} frames) preprocessed in {num(r['preprocess_s'] / 60, 0)} minutes on 2 CPU cores "
             f"(peak {num(r['preprocess_peak_rss_gib'], 1)} GiB) and trains at {num(r['train_seconds_per_step']['head'])} s a head step holding "
-            f"{num(r['train_peak_rss_gib'], 1)} GiB ([benchmarks](docs/benchmarks.md#minutes-of-footage-adnerf-bench-scale)).")
+            f"{num(r['train_peak_rss_gib'], 1)} GiB ([benchmarks](docs/benchmarks.md#minutes-of-footage-adnerf-bench-scale)). "
+            "Preprocessing is CPU work (OpenCV) on any machine, faster with more cores; training at this length on a GPU is not yet measured.")
 
 
 def stream_cpu() -> list[str]:
