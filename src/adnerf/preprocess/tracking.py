@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -175,6 +175,21 @@ def _flow_box(region: np.ndarray, margin: float | None) -> tuple[int, int, int, 
     return max(0, cols[0] - grow), max(0, rows[0] - grow), min(w, cols[-1] + 1 + grow), min(h, rows[-1] + 1 + grow)
 
 
+def _pair_flows(gray: list[np.ndarray], regions: np.ndarray, config: TrackConfig) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Forward and backward dense flow of each consecutive frame pair on the box of its rigid
+    regions (:func:`_flow_box`), with the box's corner ``(x0, y0)``, computed on threads in order."""
+    local = threading.local()
+
+    def pair(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # a flow object per thread: they keep state
+        if not hasattr(local, "flow"):
+            local.flow = dense_flow(config.flow)
+        x0, y0, x1, y1 = _flow_box(regions[i] | regions[i + 1], config.flow_margin)
+        a, b = np.ascontiguousarray(gray[i][y0:y1, x0:x1]), np.ascontiguousarray(gray[i + 1][y0:y1, x0:x1])
+        return local.flow(a, b), local.flow(b, a), np.array([x0, y0], np.float64)
+
+    return in_threads(pair, range(len(gray) - 1))
+
+
 def _sample(flow: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Bilinear sample of a flow field at centre-convention points ``(n, 2)``."""
     map_xy = (pts - 0.5).astype(np.float32).reshape(-1, 1, 2)
@@ -243,16 +258,7 @@ def track_points(
             alive.append(len(paths))
             paths.append([(i, float(x), float(y))])
 
-    local = threading.local()
-
-    def pair(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # a flow object per thread: they keep state
-        if not hasattr(local, "flow"):
-            local.flow = dense_flow(config.flow)
-        x0, y0, x1, y1 = _flow_box(regions[i] | regions[i + 1], config.flow_margin)
-        a, b = np.ascontiguousarray(gray[i][y0:y1, x0:x1]), np.ascontiguousarray(gray[i + 1][y0:y1, x0:x1])
-        return local.flow(a, b), local.flow(b, a), np.array([x0, y0], np.float64)
-
-    flows = in_threads(pair, range(n - 1))  # computed ahead, side by side, while the tracks follow
+    flows = _pair_flows(gray, regions, config)  # computed ahead, side by side, while the tracks follow
     seed(0)
     for i in range(n - 1):
         fwd, bwd, o = next(flows)
