@@ -73,7 +73,6 @@ def rigid_region(labels: np.ndarray, rigid_fraction: float = 0.62, edge_margin: 
     if limit is not None and np.isfinite(limit):
         cut = min(cut, limit - 0.5)  # rows whose centre lies above the limit
     stop = max(0, int(np.ceil(cut)))
-    head[stop:] = False
     if erode > 0 and stop > rows[0]:
         # Erode only the box the kept rows can reach: a pixel's erosion reads the pixels within
         # `erode` of it, so the box grows by that much (clipped to the frame, where OpenCV's
@@ -82,8 +81,8 @@ def rigid_region(labels: np.ndarray, rigid_fraction: float = 0.62, edge_margin: 
         y0, y1 = max(0, rows[0] - erode), min(h, stop + erode)
         x0, x1 = max(0, cols[0] - erode), min(w, cols[-1] + 1 + erode)
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1, 2 * erode + 1))
-        box = cv2.erode(np.ascontiguousarray(labels[y0:y1, x0:x1] == LABEL_HEAD, dtype=np.uint8), kernel) > 0
-        head[y0:stop, x0:x1] = box[: stop - y0]
+        head[y0:stop, x0:x1] = (cv2.erode(head[y0:y1, x0:x1].astype(np.uint8), kernel) > 0)[: stop - y0]
+    head[stop:] = False
     return head
 
 
@@ -370,19 +369,21 @@ def extend_tracks(
         reach: Frames before and after the seed frame that are searched.
         limits: ``(N,)`` rows the rigid region stays above per frame (see :func:`rigid_region`).
         regions: ``(N, H, W)`` bool rigid regions already made by :func:`rigid_regions` with
-            these labels, settings and limits; ``None``: made here, frame by frame.
+            these labels, settings and limits; ``None``: made here.
 
     Returns:
         New :class:`Tracks` with the added observations.
     """
     gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
+    if regions is None:
+        regions = rigid_regions(labels, config, limits)
     uv = tracks.uv.copy()
     n = len(frames)
     win = (config.anchor_window or 15,) * 2
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
     def observe(i: int) -> list[tuple[np.ndarray, np.ndarray]]:
         """Frame ``i``'s new observations: (track indices, positions) per seed frame."""
-        region = rigid_region(labels[i], config.rigid_fraction, config.edge_margin, _limit(limits, i)) if regions is None else regions[i]
+        region = regions[i]
         near = np.flatnonzero((np.abs(tracks.seed_frame - i) <= reach) & ~np.isfinite(uv[i, :, 0]))
         if len(near) == 0:
             return []
