@@ -94,16 +94,18 @@ def test_training_resumes_on_the_device_and_runs_render_across_devices(tiny: Pat
     assert np.abs(on_cpu - on_dev).mean() <= tolerance
 
 
-def test_trainer_draws_frames_on_the_cpu_and_fuses_adam_on_cuda(tiny: Path, tmp_path: Path, device: torch.device) -> None:
-    """The frame pools stay on the CPU (a draw read back from a GPU waits for its queue); on CUDA
-    the optimisers are fused, on the CPU the plain loop (the CPU path as it was)."""
+def test_trainer_draws_frames_on_the_cpu_and_fuses_adam(tiny: Path, tmp_path: Path, device: torch.device) -> None:
+    """The frame pools stay on the CPU (a draw read back from a GPU waits for its queue); the
+    optimisers are fused on every device (on two CPU cores the head's update takes a sixth of the
+    per-parameter loop's time)."""
     ds = load_dataset(tiny, truth=False)
     tcfg = TrainConfig(head_iters=3, torso_iters=0, rays=32)
+    flushes = torch.set_flush_denormal(False)
     tr = Trainer(tmp_path, ds, model_config(ds.meta, "fast", eye=blinks_in(ds.eye, ds.meta.train)), tcfg, str(device), False)
+    assert float(torch.tensor(1e-30) * torch.tensor(1e-10)) == 0.0 or not flushes  # the trainer flushes subnormals (adnerf.subnormals)
     assert tr.train_frames.device.type == "cpu" and tr.blinking.device.type == "cpu"
     assert tr.pick_frame() in set(ds.meta.train)
-    fused = device.type == "cuda"
-    assert bool(tr.opt_head.defaults.get("fused")) == fused and bool(tr.opt_torso.defaults.get("fused")) == fused
+    assert tr.opt_head.defaults.get("fused") and tr.opt_torso.defaults.get("fused")
     tr.head_stage(None)
     assert tr.head_step == 3 and all(torch.isfinite(p).all() for p in tr.model.parameters())
 

@@ -15,7 +15,7 @@ import adnerf
 PACKAGE = Path(adnerf.__file__).parent
 
 # The toolkit parts a researcher composes, and the small utilities beside them (adnerf/*.py).
-TOOLKIT = {"rays", "cameras", "pose", "samplers", "rng", "occupancy", "encodings", "fields", "compositor", "renderer", "analytic", "metrics", "io", "atomic", "allocator", "memory", "lock", "ridge", "threads"}
+TOOLKIT = {"rays", "cameras", "pose", "samplers", "rng", "occupancy", "encodings", "fields", "compositor", "renderer", "analytic", "metrics", "io", "atomic", "allocator", "subnormals", "memory", "lock", "ridge", "threads"}
 # What each room may import besides itself and the toolkit: the rooms below it.
 FLOORS = ["audio", "formats", "model", "synth", "preprocess", "evaluation", "commands", "bench", "cli"]
 MAY_IMPORT = {room: set(FLOORS[:k]) for k, room in enumerate(FLOORS)}

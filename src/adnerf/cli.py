@@ -16,7 +16,7 @@ import warnings
 from contextlib import contextmanager
 from typing import Iterator, Sequence
 
-from . import allocator
+from . import allocator, subnormals
 from .atomic import DiskFullError, disk_full
 from .audio.features import FeatureError
 from .bench import command as bench
@@ -78,6 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # argparse: a refused argument (2, message printed) or --help (0)
         return int(exc.code or 0)
     allocator.tune_allocator()  # keeps freed tensor memory for reuse: fewer page faults (ADNERF_TUNE_MALLOC=0: off)
+    subnormals.flush_subnormals()  # before torch starts its worker threads, which take the setting (ADNERF_FLUSH_SUBNORMALS=0: off)
     try:
         with _sigterm_as_interrupt(), warnings.catch_warnings():
             warnings.showwarning = lambda message, *rest, **kw: print(f"adnerf: warning: {message}", file=sys.stderr)
