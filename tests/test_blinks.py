@@ -38,6 +38,7 @@ from adnerf.synth import (
     TorsoModel,
     background_plate,
     pose_track,
+    render_eye_openings,
     render_frame,
     synthesize,
 )
@@ -130,6 +131,37 @@ def test_eye_reader_reads_the_exact_scene(tmp_path: Path) -> None:
     truth = np.array([1.0, 0.35, 0.0])
     frames = np.stack([exact_frame(head, torso, p, plate, eye=e) for p, e in zip(poses, truth)])
     np.testing.assert_allclose(reader.read(frames, np.arange(3)), truth, atol=0.06)
+    # The templates and the demo's exact frames ray-cast only the eye box: the same pixels as the
+    # whole frame's (a box shifted by one pixel, or rows and columns swapped, would differ).
+    crops = [exact_frame(head, torso, p, plate, eye=e, box=reader.box(i)) for i, (p, e) in enumerate(zip(poses, truth))]
+    for i, crop in enumerate(crops):
+        x0, y0, x1, y1 = reader.box(i)
+        assert x1 - x0 != y1 - y0 and np.array_equal(crop, frames[i, y0:y1, x0:x1])
+    np.testing.assert_array_equal(reader.read_crops(crops, np.arange(3)), reader.read(frames, np.arange(3)))
+    with pytest.raises(ValueError, match="box"):
+        reader.read_crops([c[1:] for c in crops], np.arange(3))  # a crop that is not its pose's box
+
+
+def test_synthetic_render_of_a_box_is_that_box_of_the_frame() -> None:
+    size = 48
+    head, torso, plate = HeadModel(size), TorsoModel(size), background_plate(size)
+    pose = pose_track(1, 25.0, 0)[0]
+    whole = render_frame(head, torso, pose, 0.4, plate, 0.5)
+    box = (5, 20, 41, 48)  # across the head, the torso and the background, to the bottom edge
+    part = render_frame(head, torso, pose, 0.4, plate, 0.5, box=box)
+    labels = part[1]
+    assert (labels == 0).any() and (labels == 1).any() and (labels == 2).any()
+    for a, b in zip(whole, part):
+        np.testing.assert_array_equal(a[20:48, 5:41], b)
+    # One cast for several eye openings (the eye reader's templates): each is render_frame's.
+    eyes = (1.0, 0.4, 0.0)
+    many = render_eye_openings(head, torso, pose, 0.4, plate, eyes)
+    assert not np.array_equal(many[0], many[2])
+    for e, rgb in zip(eyes, many):
+        np.testing.assert_array_equal(rgb, render_frame(head, torso, pose, 0.4, plate, e)[0])
+    for bad in ((5, 20, 5, 30), (0, 0, 49, 10), (-1, 0, 4, 4)):
+        with pytest.raises(ValueError, match="box"):
+            render_frame(head, torso, pose, 0.4, plate, box=bad)
 
 
 def test_training_gives_each_frame_its_own_eye_openness(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -43,6 +43,7 @@ from .audio.features import FeatureSpec, resample, speech_windows, voiced_loudne
 from .audio.visemes import jaw_track
 from .io import AudioTrack, write_video
 from .lock import writes_folder
+from .threads import in_threads
 from .model.blinks import blink_track
 from .formats.dataset import (
     LABEL_HEAD,
@@ -495,39 +496,80 @@ def pixel_ray_directions(size: int) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def render_frame(head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: float, background: np.ndarray, eye: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Ray-cast one frame (jaw opened by ``opening``, eyes open by ``eye``).
+@dataclass
+class _Hits:
+    """Where one frame's pixel rays meet the scene (:func:`_cast`): what shading needs."""
 
-    Returns:
-        ``(rgb (H, W, 3) float in [0, 1], labels (H, W) uint8, depth (H, W) float32)``.
-    """
-    size = background.shape[0]
-    dirs = pixel_ray_directions(size)
-    origins = np.zeros_like(dirs)
+    shape: tuple[int, int]  # (h, w) of the pixels cast
+    ray: np.ndarray  # (M,) the pixels whose rays hit, row-major in the box
+    depth: np.ndarray  # (M,) distance to the hit
+    is_head: np.ndarray  # (M,) bool
+    head_rest: np.ndarray  # (K, 3) the head hits' rest positions (K = is_head.sum())
+    torso_rgb: np.ndarray  # (M - K, 3) the torso hits' colours
+
+
+def _cast(head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: float, size: int, box: tuple[int, int, int, int] | None) -> _Hits:
+    x0, y0, x1, y1 = (0, 0, size, size) if box is None else box
+    if not (0 <= x0 < x1 <= size and 0 <= y0 < y1 <= size):
+        raise ValueError(f"box {box} is not a non-empty box inside the {size}x{size} frame")
+    dirs = pixel_ray_directions(size).reshape(size, size, 3)[y0:y1, x0:x1].reshape(-1, 3)
     head_v = head.vertices(opening) @ pose[:3, :3].T + pose[:3, 3]
     tpose = torso_pose(pose)
     torso_v = np.asarray(torso.mesh.vertices) @ tpose[:3, :3].T + tpose[:3, 3]
     n_head = len(head.faces)
     mesh = trimesh.Trimesh(np.concatenate([head_v, torso_v]), np.concatenate([head.faces, np.asarray(torso.mesh.faces) + len(head_v)]), process=False)
-    tri, ray, loc = _intersector(mesh).intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
-    rgb = background.reshape(-1, 3).astype(np.float32).copy()
-    labels = np.zeros(size * size, dtype=np.uint8)
-    depth = np.full(size * size, np.inf, dtype=np.float32)
-    depth[ray] = np.linalg.norm(loc, axis=1)
+    tri, ray, loc = _intersector(mesh).intersects_id(np.zeros_like(dirs), dirs, multiple_hits=False, return_locations=True)
     is_head = tri < n_head
     bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
-    if is_head.any():
-        rest = np.einsum("nk,nkj->nj", bary[is_head], head.rest[head.faces[tri[is_head]]])
-        rgb[ray[is_head]] = head.colors(rest, opening, eye)
-        labels[ray[is_head]] = LABEL_HEAD
-    if (~is_head).any():
-        local_tri = tri[~is_head] - n_head
+    head_rest = np.einsum("nk,nkj->nj", bary[is_head], head.rest[head.faces[tri[is_head]]])
+    local_tri = tri[~is_head] - n_head
+    torso_rgb = np.zeros((len(local_tri), 3))
+    if len(local_tri):
         tfaces = np.asarray(torso.mesh.faces)[local_tri]
         points = np.einsum("nk,nkj->nj", bary[~is_head], np.asarray(torso.mesh.vertices)[tfaces])
         normals = np.asarray(torso.mesh.face_normals)[local_tri]
-        rgb[ray[~is_head]] = torso.colors(points, normals, local_tri < torso.n_neck_faces)
-        labels[ray[~is_head]] = LABEL_TORSO
-    return rgb.reshape(size, size, 3), labels.reshape(size, size), depth.reshape(size, size)
+        torso_rgb = torso.colors(points, normals, local_tri < torso.n_neck_faces)
+    return _Hits((y1 - y0, x1 - x0), ray, np.linalg.norm(loc, axis=1), is_head, head_rest, torso_rgb)
+
+
+def _box_of(background: np.ndarray, box: tuple[int, int, int, int] | None) -> np.ndarray:
+    return background if box is None else background[box[1] : box[3], box[0] : box[2]]
+
+
+def _shade(hits: _Hits, head: HeadModel, opening: float, eye: float, background: np.ndarray) -> np.ndarray:
+    rgb = background.reshape(-1, 3).astype(np.float32)  # astype copies: the plate stays as it was
+    if hits.is_head.any():
+        rgb[hits.ray[hits.is_head]] = head.colors(hits.head_rest, opening, eye)
+    if (~hits.is_head).any():
+        rgb[hits.ray[~hits.is_head]] = hits.torso_rgb
+    return rgb.reshape(*hits.shape, 3)
+
+
+def render_frame(
+    head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: float, background: np.ndarray, eye: float = 1.0, box: tuple[int, int, int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ray-cast one frame (jaw opened by ``opening``, eyes open by ``eye``), or only the pixels
+    of ``box`` ``(x0, y0, x1, y1)`` (end exclusive; the same pixels as in the whole frame).
+
+    Returns:
+        ``(rgb (h, w, 3) float in [0, 1], labels (h, w) uint8, depth (h, w) float32)``: the
+        whole frame's ``(H, W)``, or the box's ``(y1 - y0, x1 - x0)``.
+    """
+    hits = _cast(head, torso, pose, opening, background.shape[0], box)
+    labels = np.zeros(hits.shape[0] * hits.shape[1], dtype=np.uint8)
+    labels[hits.ray] = np.where(hits.is_head, LABEL_HEAD, LABEL_TORSO)
+    depth = np.full(labels.shape, np.inf, dtype=np.float32)
+    depth[hits.ray] = hits.depth
+    return _shade(hits, head, opening, eye, _box_of(background, box)), labels.reshape(hits.shape), depth.reshape(hits.shape)
+
+
+def render_eye_openings(
+    head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: float, background: np.ndarray, eyes: Sequence[float], box: tuple[int, int, int, int] | None = None
+) -> np.ndarray:
+    """The colours :func:`render_frame` gives at each eye openness of ``eyes``, ``(len(eyes), h, w, 3)``:
+    the lids are painted, not modelled, so the rays are cast once for all of them."""
+    hits = _cast(head, torso, pose, opening, background.shape[0], box)
+    return np.stack([_shade(hits, head, opening, e, _box_of(background, box)) for e in eyes])
 
 
 def background_plate(size: int) -> np.ndarray:
@@ -576,8 +618,8 @@ def synthesize(out_dir: str | Path, config: SynthConfig = SynthConfig(), *, prog
     frames = np.empty((n, size, size, 3), dtype=np.uint8)
     labels = np.empty((n, size, size), dtype=np.uint8)
     depth = np.empty((n, size, size), dtype=np.float32)
-    for i in range(n):
-        rgb, labels[i], depth[i] = render_frame(head, torso, poses[i], jaw[i], background, eye[i])
+    # Frames are ray cast side by side (Embree and NumPy release the interpreter lock).
+    for i, (rgb, labels[i], depth[i]) in enumerate(in_threads(lambda k: render_frame(head, torso, poses[k], jaw[k], background, eye[k]), range(n))):
         frames[i] = _to_u8(rgb)
         if progress is not None:
             progress("render", i + 1, n)

@@ -178,8 +178,8 @@ def bench_voices(
         jaw = jaw_track(speech.phonemes or (), times, end=drive_seconds)
         pose_index = pingpong(np.arange(len(test_poses)), n)
         poses = test_poses[pose_index]
-        truth_frames = np.stack([exact_frame(head, torso, p, scene_plate, opening=o) for p, o in zip(poses, jaw)])
-        read_truth = reader.read(truth_frames, pose_index)
+        truth_crops = [exact_frame(head, torso, p, scene_plate, opening=o, box=reader.box(i)) for p, o, i in zip(poses, jaw, pose_index)]
+        read_truth = reader.read_crops(truth_crops, pose_index)
         row: dict = {"voice": voice.label, "speaker": voice.speaker, "words_per_minute": voice.words_per_minute, "frames": n, "reader_on_truth": mouth_follow(read_truth, jaw)}
         track = {"voice": voice.label, "jaw": jaw}
         audio = AudioTrack(speech.samples, SAMPLE_RATE, 0.0)

@@ -18,11 +18,16 @@ import numpy as np
 __all__ = ["EyeReader", "JawReader", "exact_frame", "eye_boxes"]
 
 
-def exact_frame(head, torso, pose: np.ndarray, plate: np.ndarray, opening: float = 0.0, eye: float = 1.0) -> np.ndarray:  # noqa: ANN001
-    """The synthetic scene rendered exactly at a pose, jaw opening and eye openness, uint8."""
+def exact_frame(head, torso, pose: np.ndarray, plate: np.ndarray, opening: float = 0.0, eye: float = 1.0, box: "tuple[int, int, int, int] | None" = None) -> np.ndarray:  # noqa: ANN001
+    """The synthetic scene rendered exactly at a pose, jaw opening and eye openness, uint8: the
+    whole frame, or only its pixels in ``box`` ``(x0, y0, x1, y1)`` (end exclusive)."""
     from ..synth import render_frame
 
-    return np.round(np.clip(render_frame(head, torso, pose, opening, plate, eye)[0], 0.0, 1.0) * 255.0).astype(np.uint8)
+    return _to_u8(render_frame(head, torso, pose, opening, plate, eye, box=box)[0])
+
+
+def _to_u8(rgb: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 def eye_boxes(meta, poses: np.ndarray, margin: float = 1.5) -> np.ndarray:  # noqa: ANN001
@@ -50,23 +55,37 @@ def eye_boxes(meta, poses: np.ndarray, margin: float = 1.5) -> np.ndarray:  # no
 
 
 class _TemplateReader:
-    """Nearest template (plus a parabola) among exact renders at a grid of values, per pose."""
+    """Nearest template (plus a parabola) among exact renders at a grid of values, per pose.
 
-    def __init__(self, values: np.ndarray, boxes: np.ndarray, render: Callable[[int, float], np.ndarray]) -> None:
+    ``render(p)`` is the exact render of pose ``p`` at every value, cropped to ``boxes[p]`` (only
+    those pixels are ray cast), ``(steps, h, w, 3)`` uint8."""
+
+    def __init__(self, values: np.ndarray, boxes: np.ndarray, render: Callable[[int], np.ndarray]) -> None:
         self.values, self.boxes = values, boxes
-        templates = []
-        for p, (x0, y0, x1, y1) in enumerate(boxes):
-            templates.append(np.stack([render(p, v)[y0:y1, x0:x1] for v in values]).astype(np.float32))
-        self.templates = templates  # per pose (steps, h, w, 3): the eye boxes differ in size
+        self.templates = [render(p).astype(np.float32) for p in range(len(boxes))]  # per pose (steps, h, w, 3): the boxes differ in size
+
+    def box(self, p: int) -> tuple[int, int, int, int]:
+        """Pose ``p``'s box ``(x0, y0, x1, y1)`` (end exclusive)."""
+        x0, y0, x1, y1 = (int(v) for v in self.boxes[p])
+        return x0, y0, x1, y1
 
     def read(self, frames: np.ndarray, pose_index: np.ndarray) -> np.ndarray:
         """Values ``(N,)`` of frames ``(N, H, W, 3)`` uint8 rendered with poses ``pose_index``."""
-        out = np.empty(len(frames))
+        crops = []
+        for frame, p in zip(frames, pose_index):
+            x0, y0, x1, y1 = self.box(p)
+            crops.append(frame[y0:y1, x0:x1])
+        return self.read_crops(crops, pose_index)
+
+    def read_crops(self, crops: "list[np.ndarray] | np.ndarray", pose_index: np.ndarray) -> np.ndarray:
+        """Values ``(N,)`` of the crops ``(h, w, 3)`` uint8 of frames rendered with poses
+        ``pose_index``, each cropped to its pose's box (:meth:`box`)."""
+        out = np.empty(len(crops))
         step = self.values[1] - self.values[0]
-        for i, (frame, p) in enumerate(zip(frames, pose_index)):
-            x0, y0, x1, y1 = self.boxes[p]
-            crop = frame[y0:y1, x0:x1].astype(np.float32)
-            err = ((self.templates[p] - crop) ** 2).mean(axis=(1, 2, 3))
+        for i, (crop, p) in enumerate(zip(crops, pose_index)):
+            if crop.shape != self.templates[p].shape[1:]:
+                raise ValueError(f"crop {i} is {crop.shape}; pose {p}'s box is {self.templates[p].shape[1:]}")
+            err = ((self.templates[p] - crop.astype(np.float32)) ** 2).mean(axis=(1, 2, 3))
             k = int(np.argmin(err))
             shift = 0.0
             if 0 < k < len(err) - 1:
@@ -95,7 +114,8 @@ class JawReader(_TemplateReader):
         head, torso = HeadModel(ds.meta.width), TorsoModel(ds.meta.width)
         plate = ds.background.astype(np.float64) / 255.0
         boxes = mouth_boxes_at(ds.meta, HeadPose.from_matrix(torch.as_tensor(poses, dtype=torch.float64)))
-        super().__init__(np.linspace(0.0, 1.0, steps), boxes, lambda p, v: exact_frame(head, torso, poses[p], plate, opening=v))
+        values = np.linspace(0.0, 1.0, steps)
+        super().__init__(values, boxes, lambda p: np.stack([exact_frame(head, torso, poses[p], plate, opening=v, box=self.box(p)) for v in values]))
 
 
 class EyeReader(_TemplateReader):
@@ -109,8 +129,10 @@ class EyeReader(_TemplateReader):
     """
 
     def __init__(self, ds, poses: np.ndarray, steps: int = 11) -> None:  # noqa: ANN001
-        from ..synth import HeadModel, TorsoModel
+        from ..synth import HeadModel, TorsoModel, render_eye_openings
 
         head, torso = HeadModel(ds.meta.width), TorsoModel(ds.meta.width)
         plate = ds.background.astype(np.float64) / 255.0
-        super().__init__(np.linspace(0.0, 1.0, steps), eye_boxes(ds.meta, poses), lambda p, v: exact_frame(head, torso, poses[p], plate, eye=v))
+        values = np.linspace(0.0, 1.0, steps)
+        # The lids are painted on the head: one ray cast a pose serves every openness.
+        super().__init__(values, eye_boxes(ds.meta, poses), lambda p: _to_u8(render_eye_openings(head, torso, poses[p], 0.0, plate, values, box=self.box(p))))
