@@ -139,6 +139,27 @@ def test_render_uses_the_given_background(scene: Path, run: Path, tmp_path: Path
     assert read_video(tmp_path / "green.mp4").frames.shape[0] == len(list((tmp_path / "green").glob("*.png")))
 
 
+def test_frames_composited_over_further_backgrounds_equal_their_own_renders(scene: Path, run: Path) -> None:
+    """What the demo's new-background panel is: the layers of one render over another plate."""
+    ds, r = load_dataset(scene), load_run(run)
+    idx = list(ds.meta.test[:2])
+    plate = ds.background.astype(np.float32) / 255.0
+    noise = np.random.default_rng(0).random(plate.shape).astype(np.float32)
+    both = render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=5.0, backgrounds=[noise, plate])
+    alone = render_frames(r, ds.features[idx], ds.poses[idx], noise, yaw=5.0)
+    np.testing.assert_array_equal(both.over[0], alone.frames)
+    np.testing.assert_array_equal(both.over[1], both.frames)
+    assert not np.array_equal(both.over[0], both.frames)
+    np.testing.assert_array_equal(both.head_opacity, alone.head_opacity)
+    # A box of pixels (what the demo reads the eyes from): the whole frames' pixels there.
+    box = (3, 10, 30, 21)
+    part = render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=5.0, backgrounds=[noise], box=box)
+    assert part.frames.shape == (2, 11, 27, 3) and part.torso_opacity.shape == (2, 11, 27)
+    np.testing.assert_allclose(part.frames, both.frames[:, 10:21, 3:30], atol=1)
+    np.testing.assert_allclose(part.over[0], both.over[0][:, 10:21, 3:30], atol=1)
+    np.testing.assert_allclose(part.head_opacity, both.head_opacity[:, 10:21, 3:30], atol=1e-5)
+
+
 def test_positive_yaw_turns_the_face_towards_the_image_left(scene: Path, run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The documented convention (``render --help``): positive yaw turns the face towards the
     image's left (the person's right), positive pitch nods it down, positive roll turns it

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
@@ -222,9 +222,12 @@ def check_matches_run(run: Run, ds: TalkingHeadDataset) -> None:
         raise DatasetError(f"{ds.root} does not match the run's training data ({'; '.join(differ)}); evaluate a run on a dataset of its own camera, frame rate and features")
 
 
-def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test", *, landmarks: bool = False, lpips: "LPIPS | None" = None, syncnet: "SyncNet | None" = None) -> tuple[dict, RenderedClip]:
+def evaluate_run(
+    run: Run, ds: TalkingHeadDataset, split: str = "test", *, landmarks: bool = False, lpips: "LPIPS | None" = None, syncnet: "SyncNet | None" = None, backgrounds: Sequence[np.ndarray] = ()
+) -> tuple[dict, RenderedClip]:
     """Render a split with its own poses and audio windows and measure it (see the module docs;
-    ``landmarks``, ``lpips`` and ``syncnet`` as in :func:`evaluate_clip`).
+    ``landmarks``, ``lpips`` and ``syncnet`` as in :func:`evaluate_clip`; ``backgrounds``: the
+    frames are also composited over these, as :func:`~adnerf.model.render_clip.render_frames` does).
 
     Raises:
         DatasetError: ``ds`` has another camera, frame rate or feature kind than the run's data.
@@ -237,7 +240,7 @@ def evaluate_run(run: Run, ds: TalkingHeadDataset, split: str = "test", *, landm
         raise ValueError(f"the dataset's {split} split is empty")
     plate = ds.background.astype(np.float32) / 255.0
     eye = ds.eye[frames] if ds.eye is not None and run.model.reads_eye else None  # the dataset's own blinks
-    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate, eye=eye)
+    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate, eye=eye, backgrounds=backgrounds)
     metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips, syncnet=syncnet)
     metrics["split"] = split
     return metrics, clip

@@ -10,8 +10,8 @@ code, its eye openness, and what the torso reads under an edit
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Callable
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -49,12 +49,15 @@ class RenderedClip:
         head_opacity: ``(N, H, W)`` float32.
         torso_opacity: ``(N, H, W)`` float32.
         seconds: Wall time of the rendering.
+        over: The same frames over each of the further backgrounds asked for, ``(N, H, W, 3)``
+            uint8 each (the layers composited once more, not rendered again).
     """
 
     frames: np.ndarray
     head_opacity: np.ndarray
     torso_opacity: np.ndarray
     seconds: float
+    over: list[np.ndarray] = field(default_factory=list)
 
 
 def pingpong_index(j: int | np.ndarray, m: int) -> np.ndarray:
@@ -81,6 +84,18 @@ def frame_setup(run: Run, plate: np.ndarray) -> tuple[Camera, torch.Tensor]:
     return camera, torch.as_tensor(plate, dtype=torch.float32, device=dev)
 
 
+def _render(run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, code: torch.Tensor, eye: float | None, read_pose: np.ndarray | None, box: tuple[int, int, int, int] | None = None) -> FrameRender:
+    dev = plate.device
+    as_pose = lambda m: HeadPose.from_matrix(torch.as_tensor(m, dtype=torch.float64, device=dev))  # noqa: E731
+    return render_frame(
+        run.model, camera, as_pose(pose), code, plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=None if read_pose is None else as_pose(read_pose), box=box
+    )
+
+
+def _u8(rgb: torch.Tensor) -> np.ndarray:
+    return np.round(rgb.cpu().numpy() * 255.0).astype(np.uint8)
+
+
 def render_one(run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, code: torch.Tensor, *, eye: float | None = None, read_pose: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One frame: its head pose ``(4, 4)``, audio code ``(audio_dim,)`` and eye openness (``None``:
     open), the torso reading ``read_pose`` when given (an edit).
@@ -88,13 +103,8 @@ def render_one(run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, 
     Returns:
         ``(rgb (H, W, 3) uint8, head opacity (H, W), torso opacity (H, W))``.
     """
-    dev = plate.device
-    as_pose = lambda m: HeadPose.from_matrix(torch.as_tensor(m, dtype=torch.float64, device=dev))  # noqa: E731
-    out: FrameRender = render_frame(
-        run.model, camera, as_pose(pose), code, plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=None if read_pose is None else as_pose(read_pose)
-    )
-    rgb = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
-    return rgb, out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
+    out = _render(run, camera, plate, pose, code, eye, read_pose)
+    return _u8(out.rgb), out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
 
 
 def render_frames(
@@ -109,6 +119,8 @@ def render_frames(
     eye: np.ndarray | None = None,
     torso_pose: str = "track",
     progress: Callable[[int, int], None] | None = None,
+    backgrounds: Sequence[np.ndarray] = (),
+    box: tuple[int, int, int, int] | None = None,
 ) -> RenderedClip:
     """Render one frame per feature window.
 
@@ -128,6 +140,10 @@ def render_frames(
         torso_pose: What the torso reads under an edit (:func:`~adnerf.model.pose_range.torso_reads`):
             ``"track"`` the un-edited poses.
         progress: Called as ``progress(done, total)``.
+        backgrounds: Further backgrounds ``(H, W, 3)`` float in [0, 1]: each frame is also
+            composited over each (:attr:`RenderedClip.over`), at no further field evaluation.
+        box: ``(x0, y0, x1, y1)`` (end exclusive): render only these pixels of every frame; the
+            clip's images are the box's ``(h, w)``.
     """
     model = run.model
     dev = next(model.parameters()).device
@@ -145,17 +161,24 @@ def render_frames(
     poses = edit_poses(track, angles)
     reads = torso_reads(torso_pose, track, poses, run.pose_range)
     camera, plate_t = frame_setup(run, plate)
+    others = [frame_setup(run, b)[1] for b in backgrounds]
+    if box is not None:
+        others = [b[box[1] : box[3], box[0] : box[2]] for b in others]
     t0 = time.perf_counter()
     with torch.no_grad():
         codes = model.frame_codes(torch.as_tensor(windows, device=dev))
     n = len(windows)
-    H, W = camera.height, camera.width
+    H, W = (camera.height, camera.width) if box is None else (box[3] - box[1], box[2] - box[0])
     frames = np.empty((n, H, W, 3), dtype=np.uint8)
     head_op = np.empty((n, H, W), dtype=np.float32)
     torso_op = np.empty((n, H, W), dtype=np.float32)
+    over = [np.empty((n, H, W, 3), dtype=np.uint8) for _ in others]
     for i in range(n):
         read = None if reads is None or not angles[i].any() else reads[i]  # an un-edited frame reads its own pose
-        frames[i], head_op[i], torso_op[i] = render_one(run, camera, plate_t, poses[i], codes[i], eye=None if eye is None else float(eye[i]), read_pose=read)
+        out = _render(run, camera, plate_t, poses[i], codes[i], None if eye is None else float(eye[i]), read, box)
+        frames[i], head_op[i], torso_op[i] = _u8(out.rgb), out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
+        for k, background in enumerate(others):
+            over[k][i] = _u8(out.over(background))
         if progress is not None:
             progress(i + 1, n)
-    return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0)
+    return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0, over)

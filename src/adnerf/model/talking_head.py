@@ -432,15 +432,23 @@ class FrameRender:
     """One rendered frame.
 
     Attributes:
-        rgb: Final colour ``(H, W, 3)`` in ``[0, 1]``.
+        rgb: Final colour ``(H, W, 3)`` in ``[0, 1]``: :meth:`over` the plate it was rendered on.
         opacity: Each rendered layer's opacity ``(H, W)``, by name (0 where a ray misses it).
         depth: Each rendered layer's depth along the unit pixel ray ``(H, W)``, float64 (0 where
             the ray misses it; the end of its last interval where its opacity is 0).
+        layers: The rendered layers composited front to back without a background: premultiplied
+            colour ``(H, W, 3)`` and opacity ``(H, W)``.
     """
 
     rgb: Tensor
     opacity: dict[str, Tensor]
     depth: dict[str, Tensor]
+    layers: Layer
+
+    def over(self, background: Tensor) -> Tensor:
+        """The frame over a background ``(H, W, 3)`` in ``[0, 1]`` (the same arithmetic as
+        :attr:`rgb` over its plate: a new background costs no field evaluation)."""
+        return composite_layers([self.layers], background.to(self.layers.rgb)).rgb.clamp(0, 1)
 
     @property
     def head_opacity(self) -> Tensor:
@@ -565,8 +573,10 @@ def render_frame(
     chunk: int | None = None,
     amp: str = "auto",
     read_pose: HeadPose | None = None,
+    box: tuple[int, int, int, int] | None = None,
 ) -> FrameRender:
-    """Render a full frame (no gradients): the layers composited front to back over the plate.
+    """Render a full frame, or the pixels of ``box`` (no gradients): the layers composited front
+    to back over the plate.
 
     Args:
         model: The trained model.
@@ -581,13 +591,24 @@ def render_frame(
         amp: Mixed precision of the fields (see :func:`mixed_precision`; default: bfloat16 on CUDA).
         read_pose: The pose the layers read as a signal (the torso), where it differs from ``pose``
             (:meth:`TalkingHead.condition`).
+        box: ``(x0, y0, x1, y1)`` (end exclusive): only these pixels' rays are rendered (the same
+            pixels as in the whole frame), and every image of the result is the box's ``(h, w)``.
     """
-    H, W = camera.height, camera.width
+    rays = camera.rays()
+    if box is not None:
+        x0, y0, x1, y1 = box
+        if not (0 <= x0 < x1 <= camera.width and 0 <= y0 < y1 <= camera.height):
+            raise ValueError(f"box {box} is not a non-empty box inside the {camera.width}x{camera.height} frame")
+        rays, plate = rays[y0:y1, x0:x1], plate[y0:y1, x0:x1]
+    H, W = rays.shape
     plate_flat = plate.reshape(-1, 3).to(torch.float32)
-    drawn = _render_layers(model, camera.rays().flatten(), model.condition(code, pose, eye, read_pose=read_pose), layers, chunk, amp, H * W, plate_flat.device)
-    rgb = composite_layers([layer for layer, _ in reversed(drawn.values())], plate_flat).rgb
-    return FrameRender(
-        rgb=rgb.reshape(H, W, 3).clamp(0, 1),
+    drawn = _render_layers(model, rays.flatten(), model.condition(code, pose, eye, read_pose=read_pose), layers, chunk, amp, H * W, plate_flat.device)
+    stack = composite_layers([layer for layer, _ in reversed(drawn.values())])
+    out = FrameRender(
+        rgb=stack.rgb,  # replaced below, by the stack over the plate
         opacity={name: layer.opacity.reshape(H, W) for name, (layer, _) in drawn.items()},
         depth={name: depth.reshape(H, W) for name, (_, depth) in drawn.items()},
+        layers=Layer(stack.rgb.reshape(H, W, 3), stack.opacity.reshape(H, W)),
     )
+    out.rgb = out.over(plate.to(torch.float32))
+    return out
