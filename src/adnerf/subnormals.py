@@ -12,11 +12,12 @@ sums are handled at zero explicitly).
 :func:`flush_subnormals` turns the flushing on for the calling thread (``torch.set_flush_denormal``:
 results and inputs below the bound become zero). A new thread takes the setting of the thread
 that creates it, so it must come before torch's first parallel operation starts its worker
-threads: the ``adnerf`` command calls it at start-up, before any work; the trainer calls it when it
-is made (in a process that already ran parallel torch work, its worker threads keep subnormals:
-call it first). Setting the environment variable ``ADNERF_FLUSH_SUBNORMALS=0`` turns it off. It
-does nothing, and returns ``False``, where the CPU cannot flush (``torch.set_flush_denormal``
-says so).
+threads: the ``adnerf`` command calls it at start-up, before any work, and so do
+:func:`~adnerf.model.train.train`, :func:`~adnerf.commands.demo.run_demo` and the trainer when they
+start. In a process that already ran parallel torch work (a notebook that rendered first), the
+worker threads keep subnormals and a long training runs up to twice as slowly: call it first.
+Setting the environment variable ``ADNERF_FLUSH_SUBNORMALS=0`` turns it off. It does nothing, and
+returns ``False``, where the CPU cannot flush (``torch.set_flush_denormal`` says so).
 """
 
 from __future__ import annotations

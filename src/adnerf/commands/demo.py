@@ -26,6 +26,7 @@ from ..formats.dataset import DatasetError, DatasetFolder, SceneMeta, load_datas
 from ..formats.outputs import OutputError
 from ..formats.run_folder import RunFolder
 from ..model.train import TrainConfig, load_run, train
+from ..subnormals import flush_subnormals
 from ..synth import SynthConfig, synthesize
 from ..model.render_clip import render_frames
 from .options import add_device, checked_device, number
@@ -155,6 +156,7 @@ def run_demo(
     """Run the demo (``train_config``: :func:`demo_schedule` of the device when ``None``); returns
     the metrics written to ``DIR/metrics.json``."""
     train_config = demo_schedule(device) if train_config is None else train_config
+    flush_subnormals()  # before the first torch work starts the worker threads (adnerf.subnormals)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data_dir, run_dir = out / "data", out / "run"

@@ -923,6 +923,7 @@ def train(
     """
     if stage not in ("head", "torso", "all"):
         raise ValueError(f"stage must be head, torso or all; got {stage!r}")
+    flush_subnormals()  # before the dataset's checks start torch's worker threads (adnerf.subnormals)
     root = Path(run_dir)
     ranks, device = init_ranks(device)
     ds = load_dataset(dataset, truth=False)
