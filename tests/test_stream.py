@@ -20,7 +20,6 @@ from adnerf.commands.stream_video import pcm_chunks
 from adnerf.io import AudioTrack, read_audio, read_video, write_video
 from adnerf.model.run_folder import load_run
 from adnerf.model import render_clip
-from adnerf.model import stream as stream_module
 from adnerf.model.stream import Streamer, pingpong_index, stream_file_chunks
 from adnerf.model.train import TrainConfig, train
 from adnerf.synth import SynthConfig, synthesize
@@ -91,19 +90,20 @@ def speech(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_video(path, np.zeros((3, 16, 16, 3), np.uint8), 2.0, AudioTrack(_speech(1.5, seed=3), 16000, 0.0))
 
 
-RENDER_ONE = render_clip.render_one
+RENDER_LAYERS = render_clip.render_layers
 
 
-def _spy(monkeypatch: pytest.MonkeyPatch, module: object) -> list[tuple]:
-    """Record what each frame is rendered from (pose, audio code, eye, the torso's pose)."""
+def _spy(monkeypatch: pytest.MonkeyPatch) -> list[tuple]:
+    """Record what each frame is rendered from (pose, audio code, eye, the torso's pose), from now
+    on: the offline loop and the streamer both render every frame with ``render_layers``."""
     seen: list[tuple] = []
-    real = RENDER_ONE
+    real = RENDER_LAYERS
 
-    def spy(run, camera, plate, pose, code, *, eye=None, read_pose=None):  # noqa: ANN001, ANN202
+    def spy(run, camera, plate, pose, code, *, eye=None, read_pose=None, box=None):  # noqa: ANN001, ANN202
         seen.append((np.array(pose), code.detach().cpu().numpy().copy(), eye, None if read_pose is None else np.array(read_pose)))
-        return real(run, camera, plate, pose, code, eye=eye, read_pose=read_pose)
+        return real(run, camera, plate, pose, code, eye=eye, read_pose=read_pose, box=box)
 
-    monkeypatch.setattr(module, "render_one", spy)
+    monkeypatch.setattr(render_clip, "render_layers", spy)
     return seen
 
 
@@ -114,10 +114,10 @@ def test_streamed_frames_are_the_offline_render(run, speech: Path, tmp_path: Pat
     batches), so the frames differ by at most one level of 255. A frame rendered before
     AudioAttNet's following neighbours arrived, or a pose or blink taken from the wrong frame,
     fails."""
-    offline_inputs = _spy(monkeypatch, render_clip)
+    offline_inputs = _spy(monkeypatch)
     render_audio_video(run, speech, tmp_path / "off.mp4", frames_dir=tmp_path / "off", yaw=edit.get("yaw", 0.0), blink=edit.get("blink", "auto"))
     offline = np.stack([cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in sorted((tmp_path / "off").glob("*.png"))])
-    stream_inputs = _spy(monkeypatch, stream_module)
+    stream_inputs = _spy(monkeypatch)
     start, chunks = stream_file_chunks(speech, 0.013)
     streamer = Streamer(run, start=start, **edit)
     frames, out_by = [], []
@@ -177,7 +177,7 @@ def test_the_causal_stream_smooths_over_past_frames_only_and_waits_less(run, spe
     or the full neighbourhood at the stream's end, fails."""
     import torch
 
-    seen = _spy(monkeypatch, stream_module)
+    seen = _spy(monkeypatch)
     start, chunks = stream_file_chunks(speech, 0.02)
     causal, full = Streamer(run, start=start, causal=True), Streamer(run, start=start)
     after = run.model.config.att_len - run.model.config.att_len // 2 - 1

@@ -24,7 +24,7 @@ from .pose_range import edit_poses, torso_reads
 from .run_folder import Run
 from .talking_head import FrameRender, render_frame
 
-__all__ = ["RenderError", "RenderedClip", "checked_poses", "frame_setup", "pingpong_index", "render_frames", "render_one"]
+__all__ = ["RenderError", "RenderedClip", "checked_poses", "frame_setup", "pingpong_index", "render_frames", "render_layers", "render_one"]
 
 
 class RenderError(ValueError):
@@ -84,7 +84,12 @@ def frame_setup(run: Run, plate: np.ndarray) -> tuple[Camera, torch.Tensor]:
     return camera, torch.as_tensor(plate, dtype=torch.float32, device=dev)
 
 
-def _render(run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, code: torch.Tensor, eye: float | None, read_pose: np.ndarray | None, box: tuple[int, int, int, int] | None = None) -> FrameRender:
+def render_layers(
+    run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, code: torch.Tensor, *, eye: float | None = None, read_pose: np.ndarray | None = None, box: tuple[int, int, int, int] | None = None
+) -> FrameRender:
+    """One frame as :class:`~adnerf.model.talking_head.FrameRender` (its layers, opacities and
+    depths; the pixels of ``box`` only when given): what :func:`render_one` and :func:`render_frames`
+    render every frame with."""
     dev = plate.device
     as_pose = lambda m: HeadPose.from_matrix(torch.as_tensor(m, dtype=torch.float64, device=dev))  # noqa: E731
     return render_frame(
@@ -103,7 +108,7 @@ def render_one(run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, 
     Returns:
         ``(rgb (H, W, 3) uint8, head opacity (H, W), torso opacity (H, W))``.
     """
-    out = _render(run, camera, plate, pose, code, eye, read_pose)
+    out = render_layers(run, camera, plate, pose, code, eye=eye, read_pose=read_pose)
     return _u8(out.rgb), out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
 
 
@@ -175,7 +180,7 @@ def render_frames(
     over = [np.empty((n, H, W, 3), dtype=np.uint8) for _ in others]
     for i in range(n):
         read = None if reads is None or not angles[i].any() else reads[i]  # an un-edited frame reads its own pose
-        out = _render(run, camera, plate_t, poses[i], codes[i], None if eye is None else float(eye[i]), read, box)
+        out = render_layers(run, camera, plate_t, poses[i], codes[i], eye=None if eye is None else float(eye[i]), read_pose=read, box=box)
         frames[i], head_op[i], torso_op[i] = _u8(out.rgb), out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
         for k, background in enumerate(others):
             over[k][i] = _u8(out.over(background))
