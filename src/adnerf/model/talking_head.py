@@ -427,6 +427,11 @@ def migrate_state_dict(state: dict) -> dict:
     return out
 
 
+def _over(layers: Layer, background: Tensor) -> Tensor:
+    """Premultiplied ``layers`` ``(H, W, 3)`` / ``(H, W)`` over an opaque background, clamped to [0, 1]."""
+    return composite_layers([layers], background.to(layers.rgb)).rgb.clamp(0, 1)
+
+
 @dataclass
 class FrameRender:
     """One rendered frame.
@@ -448,7 +453,7 @@ class FrameRender:
     def over(self, background: Tensor) -> Tensor:
         """The frame over a background ``(H, W, 3)`` in ``[0, 1]`` (the same arithmetic as
         :attr:`rgb` over its plate: a new background costs no field evaluation)."""
-        return composite_layers([self.layers], background.to(self.layers.rgb)).rgb.clamp(0, 1)
+        return _over(self.layers, background)
 
     @property
     def head_opacity(self) -> Tensor:
@@ -601,14 +606,12 @@ def render_frame(
             raise ValueError(f"box {box} is not a non-empty box inside the {camera.width}x{camera.height} frame")
         rays, plate = rays[y0:y1, x0:x1], plate[y0:y1, x0:x1]
     H, W = rays.shape
-    plate_flat = plate.reshape(-1, 3).to(torch.float32)
-    drawn = _render_layers(model, rays.flatten(), model.condition(code, pose, eye, read_pose=read_pose), layers, chunk, amp, H * W, plate_flat.device)
+    drawn = _render_layers(model, rays.flatten(), model.condition(code, pose, eye, read_pose=read_pose), layers, chunk, amp, H * W, plate.device)
     stack = composite_layers([layer for layer, _ in reversed(drawn.values())])
-    out = FrameRender(
-        rgb=stack.rgb,  # replaced below, by the stack over the plate
+    stacked = Layer(stack.rgb.reshape(H, W, 3), stack.opacity.reshape(H, W))
+    return FrameRender(
+        rgb=_over(stacked, plate.to(torch.float32)),
         opacity={name: layer.opacity.reshape(H, W) for name, (layer, _) in drawn.items()},
         depth={name: depth.reshape(H, W) for name, (_, depth) in drawn.items()},
-        layers=Layer(stack.rgb.reshape(H, W, 3), stack.opacity.reshape(H, W)),
+        layers=stacked,
     )
-    out.rgb = out.over(plate.to(torch.float32))
-    return out

@@ -391,11 +391,10 @@ class Trainer:
         # step took 34 ms on an H200 against 47 ms with PyTorch's default multi-tensor Adam, and
         # the head stage's update 2.0 ms on two CPU cores against 11.3 ms with the default
         # per-parameter loop. The update is Adam's either way.
-        fused = {"fused": True}
         # Each stage's optimizer, its parameter groups as the stage names them.
         self.stages = {stage.name: stage for stage in (default_stages(tcfg) if stages is None else stages)}
         self.optimizers = {
-            stage.name: torch.optim.Adam([{"params": group_parameters(m, g), "lr": g.lr} for g in stage.groups], betas=(0.9, 0.99), **fused)
+            stage.name: torch.optim.Adam([{"params": group_parameters(m, g), "lr": g.lr} for g in stage.groups], betas=(0.9, 0.99), fused=True)
             for stage in self.stages.values()
         }
         # The mouth targets the audio code is asked to predict (stage 1), from the landmarks, where
@@ -409,7 +408,7 @@ class Trainer:
             self.mouth = torch.as_tensor(plan.targets, device=device)
             self.lip_pool = self.train_frames[torch.as_tensor(plan.valid)[self.train_frames]]
             self.mouth_probe = m.mouth_probe if m.mouth_probe is not None else MouthProbe(mcfg.audio_dim).to(device)
-            self.opt_probe = torch.optim.Adam(self.mouth_probe.parameters(), lr=tcfg.lr, betas=(0.9, 0.99), **fused)
+            self.opt_probe = torch.optim.Adam(self.mouth_probe.parameters(), lr=tcfg.lr, betas=(0.9, 0.99), fused=True)
         elif m.reads_mouth:
             raise RunError(f"the run's head reads the mouth, but the mouth target is not used on {ds.root} ({plan.doc['why']})")
         elif self.progress and "signal" in plan.doc:
