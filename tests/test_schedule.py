@@ -120,3 +120,30 @@ def test_each_frames_head_box_pixels_are_kept_from_its_first_draw(tmp_path: Path
             assert torch.equal(got, want), f
             sets.append(frozenset(got.tolist()))
     assert len(set(sets)) > 1  # the head moves: frames differ, so one frame's pixels kept for all would fail
+
+
+def test_sample_counts_and_head_grid_from_the_schedule_are_trained_stored_and_rendered(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from adnerf.model.run_folder import load_run
+    from adnerf.renderer import VolumeRenderer
+
+    data = synthesize(tmp_path / "data", SynthConfig(seconds=1.2, size=40, seed=5))
+    made: list[tuple[int, int]] = []
+    real_init = VolumeRenderer.__init__
+
+    def spy(self, bounds, n_coarse, n_fine=0, *args, **kw):  # noqa: ANN001, ANN002, ANN003, ANN202
+        made.append((n_coarse, n_fine))
+        return real_init(self, bounds, n_coarse, n_fine, *args, **kw)
+
+    monkeypatch.setattr(VolumeRenderer, "__init__", spy)
+    cfg = TrainConfig(head_iters=2, torso_iters=2, rays=32, log_every=1, head_samples=6, torso_samples=4, head_grid=32)
+    train(data, tmp_path / "run", config=cfg, progress=False)
+    assert set(made) == {(6, 6), (4, 4)}  # each layer trained with its own count, coarse and fine
+    run = load_run(tmp_path / "run")
+    assert run.model.layers["head"].samples == (6, 6) and run.model.layers["torso"].samples == (4, 4)
+    assert run.model.config.head_fine.grid_max_resolution == 32 and run.model.config.torso_fine.grid_max_resolution == 128
+    assert [p.shape[-1] for p in run.model.layers["head"].fine.position_encoding.planes][-1] == 32
+    default = model_config(load_dataset(data, truth=False).meta)
+    assert (default.head_samples, default.torso_samples, default.head_fine.grid_max_resolution) == ((16, 16), (16, 16), 256)
+    for bad, message in (({"head_samples": 1}, "head_samples"), ({"head_grid": 8}, "head_grid"), ({"head_grid": 64, "preset": "paper"}, "head_grid")):
+        with pytest.raises(ValueError, match=message):
+            TrainConfig(**bad).validate()

@@ -401,6 +401,12 @@ class HeadModel:
         self.face_scale = scale
         hair = photo[18:70, 175:285]
         self.hair = _shrink(hair, scale)
+        # The faces the jaw never moves (every corner's weight 0) are cast against one mesh built
+        # once; only the jaw's faces are rebuilt for each opening (_cast).
+        moving = self.jaw_weight[self.faces].max(axis=1) > 0
+        self.jaw_faces = np.flatnonzero(moving)
+        self.fixed_faces = np.flatnonzero(~moving)
+        self.fixed = _Target(trimesh.Trimesh(self.rest, self.faces[self.fixed_faces], process=False))
 
     def vertices(self, opening: float) -> np.ndarray:
         """Canonical vertex positions ``(V, 3)`` with the jaw opened by ``opening`` in [0, 1]."""
@@ -410,6 +416,8 @@ class HeadModel:
         out = self.rest.copy()
         out[:, 1] = p[:, 1] * c - p[:, 2] * s + self.hinge[1]
         out[:, 2] = p[:, 1] * s + p[:, 2] * c + self.hinge[2]
+        still = angle == 0  # exactly the rest positions: the jaw's edge meets the fixed faces without a crack
+        out[still] = self.rest[still]
         return out
 
     def colors(self, rest_points: np.ndarray, opening: float, eye: float = 1.0) -> np.ndarray:
@@ -461,6 +469,7 @@ class TorsoModel:
         self.parts = [neck, shoulders]
         self.mesh = trimesh.util.concatenate(self.parts)
         self.n_neck_faces = len(neck.faces)
+        self.target = _Target(self.mesh)
         photo = _photo()
         suit = photo[300:500, 40:340]
         scale = min(1.0, FOCAL_PER_PIXEL * size / 6.35 * 3.4 * 1.5 / suit.shape[1])
@@ -478,14 +487,33 @@ class TorsoModel:
         return np.clip(rgb * shade[:, None], 0.0, 1.0)
 
 
-def _intersector(mesh: trimesh.Trimesh):
-    if trimesh.ray.has_embree:
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
+class _Target:
+    """A mesh in its own frame, ready to be ray-cast from any rigid placement of it (its
+    acceleration structure is built once: :meth:`first_hits` moves the rays, not the mesh)."""
 
-        return RayMeshIntersector(mesh)
-    from trimesh.ray.ray_triangle import RayMeshIntersector as Slow
+    def __init__(self, mesh: trimesh.Trimesh) -> None:
+        self.mesh = mesh
+        self.triangles = np.asarray(mesh.triangles)
+        if trimesh.ray.has_embree:
+            from trimesh.ray.ray_pyembree import RayMeshIntersector
+        else:
+            from trimesh.ray.ray_triangle import RayMeshIntersector  # type: ignore[assignment]
+        self.intersector = RayMeshIntersector(mesh)
+        self.first_hits(np.eye(4), np.array([[0.0, 0.0, 1.0]]))  # builds it now, before threads share it
 
-    return Slow(mesh)
+    def first_hits(self, placement: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The first hit of each camera ray from the origin along unit ``dirs (n, 3)``, with the
+        mesh placed by ``placement`` (mesh frame -> camera, rigid ``(4, 4)``).
+
+        Returns:
+            ``(ray (m,), face (m,), distance (m,), barycentric (m, 3))`` of the rays that hit.
+        """
+        R, t = placement[:3, :3], placement[:3, 3]
+        origin = -(R.T @ t)
+        local = dirs @ R  # R^T d of each direction: unit still
+        face, ray, loc = self.intersector.intersects_id(np.broadcast_to(origin, local.shape), local, multiple_hits=False, return_locations=True)
+        bary = trimesh.triangles.points_to_barycentric(self.triangles[face], loc) if len(face) else np.zeros((0, 3))
+        return ray, face, np.linalg.norm(loc - origin, axis=1), bary
 
 
 def pixel_ray_directions(size: int) -> np.ndarray:
@@ -513,23 +541,47 @@ def _cast(head: HeadModel, torso: TorsoModel, pose: np.ndarray, opening: float, 
     if not (0 <= x0 < x1 <= size and 0 <= y0 < y1 <= size):
         raise ValueError(f"box {box} is not a non-empty box inside the {size}x{size} frame")
     dirs = pixel_ray_directions(size).reshape(size, size, 3)[y0:y1, x0:x1].reshape(-1, 3)
-    head_v = head.vertices(opening) @ pose[:3, :3].T + pose[:3, 3]
-    tpose = torso_pose(pose)
-    torso_v = np.asarray(torso.mesh.vertices) @ tpose[:3, :3].T + tpose[:3, 3]
-    n_head = len(head.faces)
-    mesh = trimesh.Trimesh(np.concatenate([head_v, torso_v]), np.concatenate([head.faces, np.asarray(torso.mesh.faces) + len(head_v)]), process=False)
-    tri, ray, loc = _intersector(mesh).intersects_id(np.zeros_like(dirs), dirs, multiple_hits=False, return_locations=True)
-    is_head = tri < n_head
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
-    head_rest = np.einsum("nk,nkj->nj", bary[is_head], head.rest[head.faces[tri[is_head]]])
-    local_tri = tri[~is_head] - n_head
+    # Three meshes, each cast in its own frame: the head's fixed faces and the torso (built once)
+    # and the jaw at this opening; a pixel sees the nearest of their first hits.
+    jaw = _Target(trimesh.Trimesh(head.vertices(opening), head.faces[head.jaw_faces], process=False))
+    parts = [
+        (head.fixed.first_hits(pose, dirs), head.fixed_faces),
+        (jaw.first_hits(pose, dirs), head.jaw_faces),
+        (torso.target.first_hits(torso_pose(pose), dirs), None),
+    ]
+    n = len(dirs)
+    nearest = np.full(n, np.inf)
+    which = np.full(n, -1)
+    for k, ((ray, _, dist, _), _) in enumerate(parts):
+        closer = dist < nearest[ray]
+        nearest[ray[closer]] = dist[closer]
+        which[ray[closer]] = k
+    rays, depth, is_head, head_faces, head_bary, torso_faces, torso_bary = [], [], [], [], [], [], []
+    for k, ((ray, face, dist, bary), faces) in enumerate(parts):
+        won = which[ray] == k
+        rays.append(ray[won])
+        depth.append(dist[won])
+        is_head.append(np.full(int(won.sum()), faces is not None))
+        if faces is not None:
+            head_faces.append(faces[face[won]])
+            head_bary.append(bary[won])
+        else:
+            torso_faces.append(face[won])
+            torso_bary.append(bary[won])
+    ray, depth_all, head_mask = np.concatenate(rays), np.concatenate(depth), np.concatenate(is_head)
+    order = np.argsort(ray, kind="stable")  # pixel order, as one cast would give
+    hf, hb = np.concatenate(head_faces), np.concatenate(head_bary)
+    head_rest = np.einsum("nk,nkj->nj", hb, head.rest[head.faces[hf]])
+    local_tri, tb = torso_faces[0], torso_bary[0]
     torso_rgb = np.zeros((len(local_tri), 3))
     if len(local_tri):
-        tfaces = np.asarray(torso.mesh.faces)[local_tri]
-        points = np.einsum("nk,nkj->nj", bary[~is_head], np.asarray(torso.mesh.vertices)[tfaces])
+        points = np.einsum("nk,nkj->nj", tb, np.asarray(torso.mesh.vertices)[np.asarray(torso.mesh.faces)[local_tri]])
         normals = np.asarray(torso.mesh.face_normals)[local_tri]
         torso_rgb = torso.colors(points, normals, local_tri < torso.n_neck_faces)
-    return _Hits((y1 - y0, x1 - x0), ray, np.linalg.norm(loc, axis=1), is_head, head_rest, torso_rgb)
+    # head_rest and torso_rgb follow the head and torso hits in pixel order.
+    head_order = np.argsort(ray[head_mask], kind="stable")
+    torso_order = np.argsort(ray[~head_mask], kind="stable")
+    return _Hits((y1 - y0, x1 - x0), ray[order], depth_all[order], head_mask[order], head_rest[head_order], torso_rgb[torso_order])
 
 
 def _box_of(background: np.ndarray, box: tuple[int, int, int, int] | None) -> np.ndarray:

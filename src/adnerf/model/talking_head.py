@@ -28,7 +28,7 @@ nothing here switches on layer names.
 from __future__ import annotations
 
 import contextlib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Literal, Mapping, Sequence
 
 import numpy as np
@@ -211,7 +211,17 @@ class ModelConfig:
         return ModelConfig(**d)
 
 
-def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", audio_dim: int = 64, eye: bool = False, mouth: bool = False, signals: Sequence[str] = ()) -> ModelConfig:
+def model_config(
+    meta: SceneMeta,
+    preset: Literal["fast", "paper"] = "fast",
+    audio_dim: int = 64,
+    eye: bool = False,
+    mouth: bool = False,
+    signals: Sequence[str] = (),
+    head_samples: int = 0,
+    torso_samples: int = 0,
+    head_grid: int = 0,
+) -> ModelConfig:
     """The model for a dataset.
 
     ``"fast"``: tri-plane grids with small MLPs (the default; what trains on a CPU in minutes).
@@ -219,7 +229,24 @@ def model_config(meta: SceneMeta, preset: Literal["fast", "paper"] = "fast", aud
     ``eye``: the head also reads the eye openness (for a dataset with ``eye.npy``).
     ``mouth``: the head also reads the mouth's opening and width (:attr:`ModelConfig.mouth_dim`).
     ``signals``: further registered signals the head reads (:attr:`ModelConfig.head_signals`).
+    ``head_samples``, ``torso_samples``: samples per ray of each pass of the layer (0: the preset's).
+    ``head_grid``: the finest plane resolution of the head's fine field (``"fast"``; 0: 256).
     """
+    config = _preset_config(meta, preset, audio_dim, eye, mouth, signals)
+    if head_grid:
+        if config.head_fine.encoding != "triplane":
+            raise ValueError(f"head_grid sets a tri-plane's resolution; the {preset!r} preset's head has none")
+        if head_grid < config.head_fine.grid_base_resolution:
+            raise ValueError(f"head_grid must be at least the planes' base resolution {config.head_fine.grid_base_resolution}; got {head_grid}")
+        config = replace(config, head_fine=FieldConfig.from_dict({**config.head_fine.to_dict(), "grid_max_resolution": head_grid}))
+    if head_samples:
+        config = replace(config, head_samples=(head_samples, head_samples))
+    if torso_samples:
+        config = replace(config, torso_samples=(torso_samples, torso_samples))
+    return config
+
+
+def _preset_config(meta: SceneMeta, preset: str, audio_dim: int, eye: bool, mouth: bool, signals: Sequence[str]) -> ModelConfig:
     eye_dim = signal_width("eye", 0) if eye else 0
     mouth_dim = signal_width("mouth", 0) if mouth else 0
     head_cond = audio_dim + eye_dim + mouth_dim + sum(signal_width(name, audio_dim) for name in signals)

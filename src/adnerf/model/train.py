@@ -948,7 +948,7 @@ def train(
     if not resume:
         # The head reads the eye openness when the clip blinks (else it carries nothing to learn),
         # and the mouth when the mouth target is used and mouth_input asks for it.
-        mcfg = model_config(ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train), mouth=plan.used and tcfg.mouth_input == 1)  # type: ignore[arg-type]
+        mcfg = model_config(ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train), mouth=plan.used and tcfg.mouth_input == 1, head_samples=tcfg.head_samples, torso_samples=tcfg.torso_samples, head_grid=tcfg.head_grid)  # type: ignore[arg-type]
     if mcfg.feature_dim != ds.meta.feature_dim:
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")
     stages = default_stages(tcfg)

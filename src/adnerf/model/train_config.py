@@ -70,6 +70,13 @@ class TrainConfig:
             CPU), ``"bf16"`` or ``"off"``; the compositor and the losses stay in float32.
         seed: Seed of the initialisation and of the ray sampling.
         preset: Field preset (``"fast"`` or ``"paper"``; see :func:`~adnerf.model.talking_head.model_config`).
+        head_samples: Samples per ray of each pass of the head layer (coarse, and as many again
+            for the fine pass), in training and in every render of the run; 0: the preset's
+            (fast 16 + 16, paper 64 + 128).
+        torso_samples: The same for the torso layer.
+        head_grid: Finest plane resolution of the head's fine tri-plane field (fast preset), in
+            cells a side; 0: the preset's (256). Finer planes than a frame has pixels across
+            cannot be taught cell by cell, and each one costs time in every step.
     """
 
     head_iters: int = 3600
@@ -96,6 +103,9 @@ class TrainConfig:
     amp: str = "auto"
     seed: int = 0
     preset: str = "fast"
+    head_samples: int = 0
+    torso_samples: int = 0
+    head_grid: int = 0
 
     def scaled(self, k: int) -> "TrainConfig":
         """The same schedule in ``k`` times fewer, ``k`` times larger steps: ``k`` times the rays,
@@ -161,6 +171,13 @@ class TrainConfig:
             raise ValueError(f"lip_min_signal is a correlation, in [-1, 1]; got {self.lip_min_signal}")
         if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1 and 0 <= self.eye_rays <= 1 and 0 <= self.blink_frames <= 1):
             raise ValueError("mouth_rays, eye_rays, blink_frames and torso_person_rays must lie in [0, 1]")
+        for key in ("head_samples", "torso_samples"):
+            if getattr(self, key) != 0 and getattr(self, key) < 2:
+                raise ValueError(f"{key} is 0 (the preset's) or at least 2 a pass; got {getattr(self, key)}")
+        if self.head_grid != 0 and self.head_grid < 16:
+            raise ValueError(f"head_grid is 0 (the preset's) or at least the planes' base resolution, 16; got {self.head_grid}")
+        if self.head_grid and self.preset != "fast":
+            raise ValueError(f"head_grid sets the fast preset's tri-plane; the {self.preset!r} preset has none")
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {PRESETS}; got {self.preset!r}")
 
