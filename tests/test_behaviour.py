@@ -160,6 +160,37 @@ def test_frames_composited_over_further_backgrounds_equal_their_own_renders(scen
     np.testing.assert_allclose(part.head_opacity, both.head_opacity[:, 10:21, 3:30], atol=1e-5)
 
 
+
+def test_a_turned_head_over_the_kept_torso_equals_its_own_render(scene: Path, run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What the demo's turned panel is: the head turned, the torso kept from the un-turned render
+    (it reads the track's pose), composited instead of rendered again."""
+    ds, r = load_dataset(scene), load_run(run)
+    idx = list(ds.meta.test[:2])
+    plate = ds.background.astype(np.float32) / 255.0
+    plain = render_frames(r, ds.features[idx], ds.poses[idx], plate, keep=("torso",))
+    assert len(plain.kept["torso"]) == 2 and plain.kept["torso"][0][0].opacity.max() > 0.5
+    turned = render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=12.0)
+    drawn: list[tuple[str, ...]] = []
+    real = render_clip.render_frame
+
+    def spy(model, *args, **kw):  # noqa: ANN001, ANN002, ANN003, ANN202
+        out = real(model, *args, **kw)
+        drawn.append(tuple(name for name in out.opacity if name not in (kw.get("given") or {})))
+        return out
+
+    monkeypatch.setattr(render_clip, "render_frame", spy)
+    reused = render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=12.0, given=plain.kept)
+    assert drawn == [("head",), ("head",)]  # the torso was not rendered again
+    np.testing.assert_array_equal(reused.frames, turned.frames)
+    np.testing.assert_array_equal(reused.torso_opacity, turned.torso_opacity)
+    assert not np.array_equal(turned.frames, plain.frames)
+    swapped = {"torso": plain.kept["torso"][::-1]}  # another frame's torso is composited as given
+    assert not np.array_equal(render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=12.0, given=swapped).frames, turned.frames)
+    with pytest.raises(ValueError, match="given"):
+        render_frames(r, ds.features[idx], ds.poses[idx], plate, yaw=12.0, given=plain.kept, torso_pose="edited")
+    with pytest.raises(ValueError, match="no 'ear' layer"):
+        render_frames(r, ds.features[idx], ds.poses[idx], plate, keep=("ear",))
+
 def test_positive_yaw_turns_the_face_towards_the_image_left(scene: Path, run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The documented convention (``render --help``): positive yaw turns the face towards the
     image's left (the person's right), positive pitch nods it down, positive roll turns it

@@ -173,12 +173,13 @@ def run_demo(
     train_seconds = time.perf_counter() - t1
     run = load_run(run_dir, device)
     log("evaluating the held-out frames")
-    # The new background's panel: the evaluated frames composited over it (no second render).
-    metrics, plain = evaluate_run(run, ds, "test", backgrounds=[new_background(ds.meta.height, ds.meta.width)])
+    # The new background's panel: the evaluated frames composited over it (no second render); the
+    # turned head's panel: over the evaluated frames' torso, which reads the un-turned pose.
+    metrics, plain = evaluate_run(run, ds, "test", backgrounds=[new_background(ds.meta.height, ds.meta.width)], keep=("torso",))
     test = list(ds.meta.test)
     windows, poses = ds.features[test], ds.poses[test]
     plate = ds.background.astype(np.float32) / 255.0
-    turned = render_frames(run, windows, poses, plate, yaw=DEMO_YAW)
+    turned = render_frames(run, windows, poses, plate, yaw=DEMO_YAW, given=plain.kept)
     replaced = plain.over[0]
     gt = ds.frames[test]
     panels = np.concatenate([gt, plain.frames, turned.frames, replaced], axis=2)

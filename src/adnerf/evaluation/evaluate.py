@@ -223,11 +223,20 @@ def check_matches_run(run: Run, ds: TalkingHeadDataset) -> None:
 
 
 def evaluate_run(
-    run: Run, ds: TalkingHeadDataset, split: str = "test", *, landmarks: bool = False, lpips: "LPIPS | None" = None, syncnet: "SyncNet | None" = None, backgrounds: Sequence[np.ndarray] = ()
+    run: Run,
+    ds: TalkingHeadDataset,
+    split: str = "test",
+    *,
+    landmarks: bool = False,
+    lpips: "LPIPS | None" = None,
+    syncnet: "SyncNet | None" = None,
+    backgrounds: Sequence[np.ndarray] = (),
+    keep: Sequence[str] = (),
 ) -> tuple[dict, RenderedClip]:
     """Render a split with its own poses and audio windows and measure it (see the module docs;
     ``landmarks``, ``lpips`` and ``syncnet`` as in :func:`evaluate_clip`; ``backgrounds``: the
-    frames are also composited over these, as :func:`~adnerf.model.render_clip.render_frames` does).
+    frames are also composited over these, and ``keep``: these layers are kept, as
+    :func:`~adnerf.model.render_clip.render_frames` does).
 
     Raises:
         DatasetError: ``ds`` has another camera, frame rate or feature kind than the run's data.
@@ -240,7 +249,7 @@ def evaluate_run(
         raise ValueError(f"the dataset's {split} split is empty")
     plate = ds.background.astype(np.float32) / 255.0
     eye = ds.eye[frames] if ds.eye is not None and run.model.reads_eye else None  # the dataset's own blinks
-    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate, eye=eye, backgrounds=backgrounds)
+    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate, eye=eye, backgrounds=backgrounds, keep=keep)
     metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips, syncnet=syncnet)
     metrics["split"] = split
     return metrics, clip

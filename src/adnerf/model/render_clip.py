@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
 
 from ..cameras import Camera
+from ..compositor import Layer
 from ..pose import HeadPose
 from ..formats.dataset import DatasetError, check_poses
 from ..formats.run_folder import scene_meta
@@ -51,6 +52,9 @@ class RenderedClip:
         seconds: Wall time of the rendering.
         over: The same frames over each of the further backgrounds asked for, ``(N, H, W, 3)``
             uint8 each (the layers composited once more, not rendered again).
+        kept: The layers asked to be kept, by name: each frame's layer and depth
+            (:meth:`~adnerf.model.talking_head.FrameRender.layer`), to be handed to another render
+            of the same frames whose edit the layer does not read (``render_frames(given=...)``).
     """
 
     frames: np.ndarray
@@ -58,6 +62,7 @@ class RenderedClip:
     torso_opacity: np.ndarray
     seconds: float
     over: list[np.ndarray] = field(default_factory=list)
+    kept: dict[str, list[tuple[Layer, torch.Tensor]]] = field(default_factory=dict)
 
 
 def pingpong_index(j: int | np.ndarray, m: int) -> np.ndarray:
@@ -85,7 +90,16 @@ def frame_setup(run: Run, plate: np.ndarray) -> tuple[Camera, torch.Tensor]:
 
 
 def render_layers(
-    run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, code: torch.Tensor, *, eye: float | None = None, read_pose: np.ndarray | None = None, box: tuple[int, int, int, int] | None = None
+    run: Run,
+    camera: Camera,
+    plate: torch.Tensor,
+    pose: np.ndarray,
+    code: torch.Tensor,
+    *,
+    eye: float | None = None,
+    read_pose: np.ndarray | None = None,
+    box: tuple[int, int, int, int] | None = None,
+    given: Mapping[str, tuple[Layer, torch.Tensor]] | None = None,
 ) -> FrameRender:
     """One frame as :class:`~adnerf.model.talking_head.FrameRender` (its layers, opacities and
     depths; the pixels of ``box`` only when given): what :func:`render_one` and :func:`render_frames`
@@ -93,7 +107,7 @@ def render_layers(
     dev = plate.device
     as_pose = lambda m: HeadPose.from_matrix(torch.as_tensor(m, dtype=torch.float64, device=dev))  # noqa: E731
     return render_frame(
-        run.model, camera, as_pose(pose), code, plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=None if read_pose is None else as_pose(read_pose), box=box
+        run.model, camera, as_pose(pose), code, plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=None if read_pose is None else as_pose(read_pose), box=box, given=given
     )
 
 
@@ -126,6 +140,8 @@ def render_frames(
     progress: Callable[[int, int], None] | None = None,
     backgrounds: Sequence[np.ndarray] = (),
     box: tuple[int, int, int, int] | None = None,
+    keep: Sequence[str] = (),
+    given: Mapping[str, Sequence[tuple[Layer, torch.Tensor]]] | None = None,
 ) -> RenderedClip:
     """Render one frame per feature window.
 
@@ -149,11 +165,26 @@ def render_frames(
             composited over each (:attr:`RenderedClip.over`), at no further field evaluation.
         box: ``(x0, y0, x1, y1)`` (end exclusive): render only these pixels of every frame; the
             clip's images are the box's ``(h, w)``.
+        keep: Names of layers whose per-frame pictures the clip keeps (:attr:`RenderedClip.kept`).
+        given: Layers already drawn for these frames, by name, one per frame (another clip's
+            :attr:`RenderedClip.kept`): composited instead of rendered. Only for a layer that
+            reads nothing the two renders differ in: the torso of a head turned with
+            ``torso_pose="track"`` is the un-edited torso.
     """
     model = run.model
     dev = next(model.parameters()).device
     if len(poses) != len(windows):
         raise RenderError(f"{len(poses)} poses for {len(windows)} audio frames")
+    given = dict(given or {})
+    for name, layers in given.items():
+        if len(layers) != len(windows):
+            raise RenderError(f"{len(layers)} given {name} layers for {len(windows)} frames")
+    drawn = run.trained_layers or tuple(model.layers)
+    for name in (*keep, *given):
+        if name not in drawn:
+            raise RenderError(f"the run draws no {name!r} layer to keep or be given; it draws {', '.join(drawn)}")
+    if given and torso_pose != "track":
+        raise RenderError(f"given layers are composited as they were drawn; with torso_pose={torso_pose!r} the torso reads the edited pose")
     if eye is not None and (np.shape(eye) != (len(windows),) or not np.isfinite(eye).all()):
         raise RenderError(f"eye openness must be {len(windows)} finite values, one per frame; got shape {np.shape(eye)}")
     try:
@@ -178,12 +209,16 @@ def render_frames(
     head_op = np.empty((n, H, W), dtype=np.float32)
     torso_op = np.empty((n, H, W), dtype=np.float32)
     over = [np.empty((n, H, W, 3), dtype=np.uint8) for _ in others]
+    kept: dict[str, list[tuple[Layer, torch.Tensor]]] = {name: [] for name in keep}
     for i in range(n):
         read = None if reads is None or not angles[i].any() else reads[i]  # an un-edited frame reads its own pose
-        out = render_layers(run, camera, plate_t, poses[i], codes[i], eye=None if eye is None else float(eye[i]), read_pose=read, box=box)
+        mine = {name: layers[i] for name, layers in given.items()}
+        out = render_layers(run, camera, plate_t, poses[i], codes[i], eye=None if eye is None else float(eye[i]), read_pose=read, box=box, given=mine or None)
         frames[i], head_op[i], torso_op[i] = _u8(out.rgb), out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
         for k, background in enumerate(others):
             over[k][i] = _u8(out.over(background))
+        for name in keep:
+            kept[name].append(out.layer(name))
         if progress is not None:
             progress(i + 1, n)
-    return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0, over)
+    return RenderedClip(frames, head_op, torso_op, time.perf_counter() - t0, over, kept)

@@ -470,12 +470,18 @@ class FrameRender:
             the ray misses it; the end of its last interval where its opacity is 0).
         layers: The rendered layers composited front to back without a background: premultiplied
             colour ``(H, W, 3)`` and opacity ``(H, W)``.
+        colour: Each rendered layer's premultiplied colour ``(H, W, 3)``, by name.
     """
 
     rgb: Tensor
     opacity: dict[str, Tensor]
     depth: dict[str, Tensor]
     layers: Layer
+    colour: dict[str, Tensor]
+
+    def layer(self, name: str) -> tuple[Layer, Tensor]:
+        """The layer ``name`` alone, and its depth: what :func:`render_frame` takes as ``given``."""
+        return Layer(self.colour[name], self.opacity[name]), self.depth[name]
 
     def over(self, background: Tensor) -> Tensor:
         """The frame over a background ``(H, W, 3)`` in ``[0, 1]`` (the same arithmetic as
@@ -511,12 +517,17 @@ def _stack(model: TalkingHead, names: Sequence[str] | None) -> list[RadianceLaye
     return [layer for name, layer in model.layers.items() if name in names]
 
 
-def _render_layers(model: TalkingHead, rays: RayBundle, cond: FrameCondition, names: Sequence[str] | None, chunk: int | None, amp: str, n: int, dev: torch.device) -> dict[str, tuple[Layer, Tensor]]:
+def _render_layers(
+    model: TalkingHead, rays: RayBundle, cond: FrameCondition, names: Sequence[str] | None, chunk: int | None, amp: str, n: int, dev: torch.device, given: Mapping[str, tuple[Layer, Tensor]] | None = None
+) -> dict[str, tuple[Layer, Tensor]]:
     """Each layer's premultiplied colour and opacity (a :class:`~adnerf.compositor.Layer`) and
-    depth along ``n`` rays, by name, back to front."""
+    depth along ``n`` rays, by name, back to front; a layer in ``given`` is taken from there."""
     chunk = chunk or render_chunk(dev)
     out = {}
     for layer in _stack(model, names):
+        if given is not None and layer.name in given:
+            out[layer.name] = given[layer.name]
+            continue
         rgb = torch.zeros(n, 3, device=dev)
         opacity = torch.zeros(n, device=dev)
         depth = torch.zeros(n, device=dev, dtype=torch.float64)
@@ -606,6 +617,7 @@ def render_frame(
     amp: str = "auto",
     read_pose: HeadPose | None = None,
     box: tuple[int, int, int, int] | None = None,
+    given: Mapping[str, tuple[Layer, Tensor]] | None = None,
 ) -> FrameRender:
     """Render a full frame, or the pixels of ``box`` (no gradients): the layers composited front
     to back over the plate.
@@ -625,6 +637,10 @@ def render_frame(
             (:meth:`TalkingHead.condition`).
         box: ``(x0, y0, x1, y1)`` (end exclusive): only these pixels' rays are rendered (the same
             pixels as in the whole frame), and every image of the result is the box's ``(h, w)``.
+        given: Layers already drawn for this frame's pixels under the same conditions (an edit
+            the layer does not read, e.g. the torso under a turn of the head), by name: each one's
+            :class:`~adnerf.compositor.Layer` (colour ``(H, W, 3)``, opacity ``(H, W)``) and depth
+            ``(H, W)`` (:meth:`FrameRender.layer`); they are composited, not rendered again.
     """
     rays = camera.rays()
     if box is not None:
@@ -633,7 +649,16 @@ def render_frame(
             raise ValueError(f"box {box} is not a non-empty box inside the {camera.width}x{camera.height} frame")
         rays, plate = rays[y0:y1, x0:x1], plate[y0:y1, x0:x1]
     H, W = rays.shape
-    drawn = _render_layers(model, rays.flatten(), model.condition(code, pose, eye, read_pose=read_pose), layers, chunk, amp, H * W, plate.device)
+    flat = None
+    if given is not None:
+        drawing = [layer.name for layer in _stack(model, layers)]
+        for name, (layer, depth) in given.items():
+            if name not in drawing:
+                raise ValueError(f"a {name!r} layer is given, but the layers drawn are {', '.join(drawing)}")
+            if layer.rgb.shape != (H, W, 3) or layer.opacity.shape != (H, W) or depth.shape != (H, W):
+                raise ValueError(f"the given {name} layer is not a {W}x{H} picture (colour {tuple(layer.rgb.shape)}, opacity {tuple(layer.opacity.shape)}, depth {tuple(depth.shape)})")
+        flat = {name: (Layer(layer.rgb.reshape(-1, 3), layer.opacity.reshape(-1)), depth.reshape(-1)) for name, (layer, depth) in given.items()}
+    drawn = _render_layers(model, rays.flatten(), model.condition(code, pose, eye, read_pose=read_pose), layers, chunk, amp, H * W, plate.device, flat)
     stack = composite_layers([layer for layer, _ in reversed(drawn.values())])
     stacked = Layer(stack.rgb.reshape(H, W, 3), stack.opacity.reshape(H, W))
     return FrameRender(
@@ -641,4 +666,5 @@ def render_frame(
         opacity={name: layer.opacity.reshape(H, W) for name, (layer, _) in drawn.items()},
         depth={name: depth.reshape(H, W) for name, (_, depth) in drawn.items()},
         layers=stacked,
+        colour={name: layer.rgb.reshape(H, W, 3) for name, (layer, _) in drawn.items()},
     )
