@@ -288,7 +288,8 @@ def demo_cpu() -> list[str]:
         ceiling = m.get(key + "_gt")
         rows.append([name, num(m.get(key), digits) + (f" ({num(ceiling, 3)})" if ceiling is not None else ""), d["bars"].get(key, "")])
     rows.append(["training time (s)", num(m.get("train_seconds"), 0), ""])
-    rows.append(["wall time of the whole demo (s)", num(d["wall_seconds"], 0), d["bars"].get("wall_seconds", "")])
+    walls = [r["wall_seconds"] for r in d.get("runs", [])] or [d["wall_seconds"]]
+    rows.append(["wall time of the whole demo (s)" + (f", {len(walls)} runs" if len(walls) > 1 else ""), " / ".join(num(w, 0) for w in walls), d["bars"].get("wall_seconds", "")])
     rows.append(["peak RSS (GiB)", num(d["peak_rss_gib"]), ""])
     return section("The demo on a CPU", f"`{d['command']}` ({d['machine']}).", table(["figure", "measured", "bar"], rows))
 
