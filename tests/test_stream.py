@@ -99,9 +99,9 @@ def _spy(monkeypatch: pytest.MonkeyPatch) -> list[tuple]:
     seen: list[tuple] = []
     real = RENDER_LAYERS
 
-    def spy(run, camera, plate, pose, code, *, eye=None, read_pose=None, box=None):  # noqa: ANN001, ANN202
+    def spy(run, camera, plate, pose, code, *, eye=None, read_pose=None, box=None, given=None):  # noqa: ANN001, ANN202
         seen.append((np.array(pose), code.detach().cpu().numpy().copy(), eye, None if read_pose is None else np.array(read_pose)))
-        return real(run, camera, plate, pose, code, eye=eye, read_pose=read_pose, box=box)
+        return real(run, camera, plate, pose, code, eye=eye, read_pose=read_pose, box=box, given=given)
 
     monkeypatch.setattr(render_clip, "render_layers", spy)
     return seen
