@@ -406,7 +406,7 @@ class HeadModel:
         moving = self.jaw_weight[self.faces].max(axis=1) > 0
         self.jaw_faces = np.flatnonzero(moving)
         self.fixed_faces = np.flatnonzero(~moving)
-        self.fixed = _Target(trimesh.Trimesh(self.rest, self.faces[self.fixed_faces], process=False))
+        self.fixed = _Target(trimesh.Trimesh(self.rest, self.faces[self.fixed_faces], process=False), shared=True)
 
     def vertices(self, opening: float) -> np.ndarray:
         """Canonical vertex positions ``(V, 3)`` with the jaw opened by ``opening`` in [0, 1]."""
@@ -469,7 +469,7 @@ class TorsoModel:
         self.parts = [neck, shoulders]
         self.mesh = trimesh.util.concatenate(self.parts)
         self.n_neck_faces = len(neck.faces)
-        self.target = _Target(self.mesh)
+        self.target = _Target(self.mesh, shared=True)
         photo = _photo()
         suit = photo[300:500, 40:340]
         scale = min(1.0, FOCAL_PER_PIXEL * size / 6.35 * 3.4 * 1.5 / suit.shape[1])
@@ -491,7 +491,7 @@ class _Target:
     """A mesh in its own frame, ready to be ray-cast from any rigid placement of it (its
     acceleration structure is built once: :meth:`first_hits` moves the rays, not the mesh)."""
 
-    def __init__(self, mesh: trimesh.Trimesh) -> None:
+    def __init__(self, mesh: trimesh.Trimesh, shared: bool = False) -> None:
         self.mesh = mesh
         self.triangles = np.asarray(mesh.triangles)
         if trimesh.ray.has_embree:
@@ -499,7 +499,8 @@ class _Target:
         else:
             from trimesh.ray.ray_triangle import RayMeshIntersector  # type: ignore[assignment]
         self.intersector = RayMeshIntersector(mesh)
-        self.first_hits(np.eye(4), np.array([[0.0, 0.0, 1.0]]))  # builds it now, before threads share it
+        if shared:  # cast from several threads: built now, before they share it
+            self.first_hits(np.eye(4), np.array([[0.0, 0.0, 1.0]]))
 
     def first_hits(self, placement: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The first hit of each camera ray from the origin along unit ``dirs (n, 3)``, with the
