@@ -17,6 +17,7 @@ from adnerf.audio.features import FeatureSpec, StreamingWindows, speech_windows
 from adnerf.cli import main
 from adnerf.commands.render_video import RenderError, render_audio_video
 from adnerf.commands.stream_video import pcm_chunks
+from adnerf.formats.dataset import DatasetFolder, read_meta
 from adnerf.io import AudioTrack, read_audio, read_video, write_video
 from adnerf.model.run_folder import load_run
 from adnerf.model import render_clip
@@ -79,8 +80,12 @@ def test_pcm_chunks_read_signed_16_bit_little_endian() -> None:
 def run(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201
     root = tmp_path_factory.mktemp("stream")
     data = synthesize(root / "data", SynthConfig(seconds=1.6, size=32, voice="formant", seed=6))
+    n = read_meta(data).n_frames  # shoulders that sway: each frame's torso map must travel with its pose
+    maps = np.repeat(np.eye(2, 3)[None], n, 0)
+    maps[:, 0, 2] = 1.5 * np.sin(np.arange(n))
+    np.save(DatasetFolder(data).torso, maps)
     r = load_run(train(data, root / "run", config=TrainConfig(head_iters=6, torso_iters=2, rays=64, log_every=2, checkpoint_every=6), progress=False))
-    assert r.model.smooths_audio  # AudioAttNet's neighbours are part of what is checked
+    assert r.model.smooths_audio and r.model.config.torso_motion  # AudioAttNet's neighbours and the torso's motion are part of what is checked
     return r
 
 
@@ -99,9 +104,10 @@ def _spy(monkeypatch: pytest.MonkeyPatch) -> list[tuple]:
     seen: list[tuple] = []
     real = RENDER_LAYERS
 
-    def spy(run, camera, plate, pose, code, *, eye=None, read_pose=None, box=None, given=None):  # noqa: ANN001, ANN202
-        seen.append((np.array(pose), code.detach().cpu().numpy().copy(), eye, None if read_pose is None else np.array(read_pose)))
-        return real(run, camera, plate, pose, code, eye=eye, read_pose=read_pose, box=box, given=given)
+    def spy(run, camera, plate, pose, code, *, eye=None, read_pose=None, box=None, given=None, signals=None):  # noqa: ANN001, ANN202
+        further = sorted((name, np.asarray(v).tolist()) for name, v in (signals or {}).items())  # the torso's motion, where the run reads it
+        seen.append((np.array(pose), code.detach().cpu().numpy().copy(), eye, None if read_pose is None else np.array(read_pose), further))
+        return real(run, camera, plate, pose, code, eye=eye, read_pose=read_pose, box=box, given=given, signals=signals)
 
     monkeypatch.setattr(render_clip, "render_layers", spy)
     return seen
@@ -112,8 +118,8 @@ def test_streamed_frames_are_the_offline_render(run, speech: Path, tmp_path: Pat
     """Frame for frame against adnerf render's PNGs (lossless), and what each frame is rendered
     from: the same poses and eyes, the audio codes to float rounding (AudioNet run on other
     batches), so the frames differ by at most one level of 255. A frame rendered before
-    AudioAttNet's following neighbours arrived, or a pose or blink taken from the wrong frame,
-    fails."""
+    AudioAttNet's following neighbours arrived, or a pose, blink or torso map taken from the
+    wrong frame, fails."""
     offline_inputs = _spy(monkeypatch)
     render_audio_video(run, speech, tmp_path / "off.mp4", frames_dir=tmp_path / "off", yaw=edit.get("yaw", 0.0), blink=edit.get("blink", "auto"))
     offline = np.stack([cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in sorted((tmp_path / "off").glob("*.png"))])
@@ -128,7 +134,8 @@ def test_streamed_frames_are_the_offline_render(run, speech: Path, tmp_path: Pat
     frames += streamer.finish()
     assert len(frames) == len(offline) > 30
     assert len(stream_inputs) == len(offline_inputs) == len(offline)
-    for (p0, c0, e0, r0), (p1, c1, e1, r1) in zip(offline_inputs, stream_inputs):
+    for (p0, c0, e0, r0, f0), (p1, c1, e1, r1, f1) in zip(offline_inputs, stream_inputs):
+        assert f0 and f1 == f0  # the torso's motion of the pose's own frame
         np.testing.assert_array_equal(p1, p0)
         np.testing.assert_allclose(c1, c0, atol=1e-5, rtol=0)
         assert e1 == e0 and (r0 is None) == (r1 is None) and (r0 is None or np.array_equal(r0, r1))
@@ -185,7 +192,7 @@ def test_the_causal_stream_smooths_over_past_frames_only_and_waits_less(run, spe
     frames = [f for piece in chunks for f in causal.push(piece)] + causal.finish()
     windows = speech_windows(read_audio(speech, sample_rate=16000), start + np.arange(len(frames)) / causal.fps, FeatureSpec("logmel"))
     with torch.no_grad():
-        for i, (_, code, _, _) in enumerate(seen):
+        for i, (_, code, _, _, _) in enumerate(seen):
             want = run.model.frame_codes(torch.as_tensor(windows[: i + 1]), [i])[0].numpy()
             np.testing.assert_allclose(code, want, atol=1e-5, rtol=0, err_msg=f"frame {i}")
     with torch.no_grad():

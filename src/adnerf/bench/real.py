@@ -142,7 +142,7 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
         the frames); with ``syncnet`` (and 25 frames per second) also its scores.
     """
     from ..audio.features import voiced_loudness
-    from ..commands.render_video import audio_frames, pingpong, render_frames
+    from ..commands.render_video import audio_frames, frame_signals, pingpong, render_frames
     from ..evaluation.landmark_metrics import mouth_opening
     from ..evaluation.syncnet import SYNCNET_FPS, face_crops, sync_scores
     from ..io import AudioTrack, read_audio, write_video
@@ -154,8 +154,8 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
     fps = ds.meta.fps
     windows = audio_frames(audio, fps, run.meta["feature_kind"], str(audio_path))
     n = len(windows)
-    poses = pingpong(ds.poses[list(ds.meta.test)], n)
-    clip = render_frames(run, windows, poses, ds.background.astype(np.float32) / 255.0)
+    played = pingpong(np.asarray(ds.meta.test), n)  # the held-out frames' poses and torso motion
+    clip = render_frames(run, windows, ds.poses[played], ds.background.astype(np.float32) / 255.0, signals=frame_signals(run, ds, played))
     if video is not None:
         write_video(video, clip.frames, fps, AudioTrack(audio.samples, audio.sample_rate, 0.0))
     labels = np.where(clip.head_opacity > 0.5, LABEL_HEAD, 0).astype(np.uint8)

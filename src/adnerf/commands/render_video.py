@@ -27,10 +27,10 @@ from ..audio.features import (
 )
 from ..io import AudioTrack, MediaError, read_audio, read_image, read_rgb, write_video
 from ..model.blinks import count_blinks, eye_track
-from ..model.render_clip import RenderedClip, RenderError, checked_poses, pingpong_index, render_frames  # re-exported: the command's refusals and its loop
+from ..model.render_clip import RenderedClip, RenderError, checked_poses, frame_signals, pingpong_index, render_frames  # re-exported: the command's refusals and its loop
 from ..model.run_folder import Run
 from ..lock import writes_folder
-from ..formats.dataset import DatasetFolder
+from ..formats.dataset import DatasetError, DatasetFolder, read_tracks
 from ..formats.outputs import check_file_output, check_frames_folder
 from ..formats.run_folder import RunFolder
 from ..preprocess.framing import Framing
@@ -265,7 +265,7 @@ def render_audio_video(
     meta = run.meta
     windows, audio = _feature_windows(meta, audio, audio_path, features)
     n = len(windows)
-    poses = load_poses(poses_file, n) if poses_file is not None else _dataset_poses(run, from_dataset, n)
+    poses, signals = (load_poses(poses_file, n), {}) if poses_file is not None else _dataset_poses(run, from_dataset, n)
     if plan is not None and plan.plate is not None:
         plate = plan.plate
     else:
@@ -283,7 +283,7 @@ def render_audio_video(
         except PasteBackError as exc:
             raise RenderError(str(exc)) from exc
         source_index = source_index[pingpong(np.arange(len(source_index)), n)]
-    clip = render_frames(run, windows, poses, plate, yaw=angles[:, 0], pitch=angles[:, 1], roll=angles[:, 2], eye=eye, progress=progress)
+    clip = render_frames(run, windows, poses, plate, yaw=angles[:, 0], pitch=angles[:, 1], roll=angles[:, 2], eye=eye, progress=progress, signals=signals)
     track = AudioTrack(audio.samples, audio.sample_rate, 0.0)
     if plan is None:
         write_video(out, clip.frames, meta["fps"], track)
@@ -323,13 +323,21 @@ def _feature_windows(meta: dict, audio: AudioTrack, audio_path: str | Path, feat
     return windows[:wanted], audio
 
 
-def _dataset_poses(run: Run, from_dataset: str | Path | None, n: int) -> np.ndarray:
-    """``n`` poses of a dataset's track played back and forth: ``from_dataset``'s, or the run's own dataset's."""
-    track = DatasetFolder(Path(from_dataset) if from_dataset is not None else run.dataset).poses
+def _dataset_poses(run: Run, from_dataset: str | Path | None, n: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """``n`` poses of a dataset's track played back and forth: ``from_dataset``'s, or the run's own
+    dataset's; and the run's further signals on the same frames (the torso's motion in each)."""
+    folder = Path(from_dataset) if from_dataset is not None else run.dataset
+    track = DatasetFolder(folder).poses
     if not track.exists():
         hint = "" if from_dataset is not None else " (the run's training dataset has moved or gone: take poses from a dataset with --from DATASET, or give them with --poses FILE.npy)"
         raise RenderError(f"{track.parent}: no {track.name} to take poses from{hint}")
-    return pingpong(checked_poses(np.load(track), str(track)), n)
+    poses = checked_poses(np.load(track), str(track))
+    index = pingpong(np.arange(len(poses)), n)
+    try:
+        signals = frame_signals(run, read_tracks(folder), index) if run.model.config.frame_signals else {}
+    except DatasetError as exc:
+        raise RenderError(str(exc)) from exc
+    return poses[index], signals
 
 
 def _write_frames(folder: Path, frames: np.ndarray) -> None:

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from kornia.metrics import ssim
 
-from ..model.render_clip import RenderedClip, render_frames
+from ..model.render_clip import RenderedClip, frame_signals, render_frames
 from ..metrics import psnr
 from ..formats.dataset import (
     LABEL_HEAD,
@@ -249,7 +249,9 @@ def evaluate_run(
         raise ValueError(f"the dataset's {split} split is empty")
     plate = ds.background.astype(np.float32) / 255.0
     eye = ds.eye[frames] if ds.eye is not None and run.model.reads_eye else None  # the dataset's own blinks
-    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate, eye=eye, backgrounds=backgrounds, keep=keep)
+    # The frames' own signals, as their own poses: the torso's motion measured in them.
+    signals = frame_signals(run, ds, frames)
+    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate, eye=eye, backgrounds=backgrounds, keep=keep, signals=signals)
     metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips, syncnet=syncnet)
     metrics["split"] = split
     return metrics, clip

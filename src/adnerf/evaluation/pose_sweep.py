@@ -34,6 +34,7 @@ import torch
 from ..cameras import Camera
 from ..formats.dataset import LABEL_HEAD, TalkingHeadDataset
 from ..model.pose_range import torso_reads
+from ..model.render_clip import frame_signals
 from ..model.run_folder import Run
 from ..model.talking_head import render_frame
 from ..pose import HeadPose
@@ -135,6 +136,7 @@ def pose_sweep(
     with torch.no_grad():
         codes = model.frame_codes(torch.as_tensor(ds.features, device=dev), list(frames))
     h, w = ds.meta.height, ds.meta.width
+    signals = frame_signals(run, ds, frames)  # the torso's motion in each frame, as its evaluation
     renders = np.empty((len(frames), len(yaws), h, w, 3), np.uint8)
     per: dict[str, list[list[float]]] = {k: [[] for _ in yaws] for k in ("identity_px", "sharpness", "neck_gap", "torso_change")}
     found = [0] * len(yaws)
@@ -147,7 +149,8 @@ def pose_sweep(
             pose = base.perturbed(yaw=math.radians(yaw))
             reads = torso_reads(torso_pose, base.matrix()[None].cpu().numpy(), pose.matrix()[None].cpu().numpy(), run.pose_range)
             read = None if reads is None else HeadPose.from_matrix(torch.as_tensor(reads[0], device=dev))
-            out = render_frame(model, camera, pose, codes[f], plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=read)
+            mine = {name: values[f] for name, values in signals.items()}
+            out = render_frame(model, camera, pose, codes[f], plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=read, signals=mine)
             rgb = np.round(out.rgb.cpu().numpy() * 255.0).astype(np.uint8)
             head_a, torso_a = out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
             renders[f, y] = rgb

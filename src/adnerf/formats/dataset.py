@@ -18,6 +18,10 @@ Layout (format ``adnerf-dataset``, version 1)::
                            +0.5) from adnerf preprocess or an imported AD-NeRF folder; the mouth
                            point in meta.json was derived from them, and training asks the audio
                            code to predict their mouth opening and width (model/mouth_target.py)
+      torso.npy            optional: (N, 2, 3) float64 the torso's motion in the image: frame i's
+                           affine map from the reference torso's pixels to its own (x' = A x + b,
+                           pixels as landmarks.npy's); the torso layer follows it
+                           (preprocess/torso_motion.py)
       preprocess_report.json, preprocess_report.png
                            adnerf preprocess's report and contact sheet
       video.mp4            synthetic scenes only: the rendered clip with its audio
@@ -56,7 +60,7 @@ from .outputs import check_folder_output
 
 __all__ = [
     "EYE_CROP", "FORMAT", "LABEL_BACKGROUND", "LABEL_HEAD", "LABEL_TORSO", "MOUTH_CROP", "TRUTH_FILES", "VERSION", "DatasetError", "DatasetFolder",
-    "SceneMeta", "TalkingHeadDataset", "Truth", "check_poses", "frame_bytes", "load_dataset", "meta_from_dict", "read_meta", "save_dataset", "tail_split", "write_wav",
+    "DatasetTracks", "SceneMeta", "TalkingHeadDataset", "Truth", "check_poses", "check_torso", "frame_bytes", "load_dataset", "meta_from_dict", "read_meta", "read_tracks", "save_dataset", "tail_split", "write_wav",
 ]  # fmt: skip
 
 FORMAT = "adnerf-dataset"
@@ -122,6 +126,10 @@ class DatasetFolder:
     @property
     def landmarks(self) -> Path:
         return self.root / "landmarks.npy"
+
+    @property
+    def torso(self) -> Path:
+        return self.root / "torso.npy"
 
     @property
     def report(self) -> Path:
@@ -304,6 +312,8 @@ class TalkingHeadDataset:
         eye: ``(N,)`` float32 eye openness (``eye.npy``), ``None`` when the dataset has none.
         landmarks: ``(N, 68, 2)`` float64 face landmarks (``landmarks.npy``), ``None`` when the
             dataset has none.
+        torso: ``(N, 2, 3)`` float64 torso motion (``torso.npy``: each frame's affine map from
+            the reference torso's pixels to its own), ``None`` when the dataset has none.
     """
 
     root: Path
@@ -317,6 +327,7 @@ class TalkingHeadDataset:
     truth: Truth | None = field(default=None, repr=False)
     eye: np.ndarray | None = None
     landmarks: np.ndarray | None = None
+    torso: np.ndarray | None = None
 
     def fingerprint(self) -> str:
         """SHA-256 of the dataset's content (metadata, frames, parsing, plate, poses, features,
@@ -325,7 +336,8 @@ class TalkingHeadDataset:
         training read them keep their fingerprint."""
         h = hashlib.sha256(json.dumps(self.meta.to_dict(), sort_keys=True).encode())
         arrays = [self.frames, self.parsing, self.background, self.poses, self.features, self.audio.samples]
-        for arr in arrays + ([] if self.eye is None else [self.eye]):  # datasets without eyes keep their fingerprint
+        # datasets without eyes or torso motion keep their fingerprint
+        for arr in arrays + [a for a in (self.eye, self.torso) if a is not None]:
             a = np.ascontiguousarray(arr)
             h.update(f"{a.dtype}{a.shape}".encode())
             h.update(a.data)
@@ -388,6 +400,7 @@ def save_dataset(
     truth: Truth | None = None,
     eye: np.ndarray | None = None,
     landmarks: np.ndarray | None = None,
+    torso: np.ndarray | None = None,
     extra: "Callable[[DatasetFolder], None] | None" = None,
     overwrite: bool = False,
     inputs: Sequence[str | Path] = (),
@@ -406,6 +419,7 @@ def save_dataset(
         truth: Exact quantities of a synthetic scene.
         eye: ``(N,)`` eye openness (``eye.npy``), or ``None``.
         landmarks: ``(N, 68, 2)`` face landmarks (``landmarks.npy``), or ``None``.
+        torso: ``(N, 2, 3)`` torso motion (``torso.npy``), or ``None``.
         extra: Called with the temporary folder's :class:`DatasetFolder` to add more files (e.g.
             the preprocessing report) before the rename.
         overwrite: Replace an existing adnerf dataset there (never another folder: see
@@ -424,6 +438,7 @@ def save_dataset(
     meta.validate()
     _check_arrays(meta, frames, parsing, background, poses, features, str(root))
     _check_eye(eye, meta.n_frames, str(root))
+    check_torso(torso, meta.n_frames, str(root))
     tmp = root.with_name(f".{root.name}.tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     files = DatasetFolder(tmp)
@@ -441,6 +456,8 @@ def save_dataset(
             np.save(files.eye, np.asarray(eye, dtype=np.float32))
         if landmarks is not None:
             np.save(files.landmarks, np.asarray(landmarks, dtype=np.float64))
+        if torso is not None:
+            np.save(files.torso, np.asarray(torso, dtype=np.float64))
         if truth is not None:
             files.truth.mkdir()
             np.save(files.truth_file("poses"), np.asarray(truth.poses, dtype=np.float64))
@@ -459,6 +476,23 @@ def save_dataset(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return root
+
+
+def check_torso(torso: np.ndarray | None, n: int, where: str) -> None:
+    """Check a torso motion track: ``(n, 2, 3)`` finite affine maps whose linear part is
+    invertible (``None`` passes).
+
+    Raises:
+        DatasetError: Another shape, a value that is not finite, or a singular map.
+    """
+    if torso is None:
+        return
+    torso = np.asarray(torso)
+    if torso.shape != (n, 2, 3) or not np.isfinite(torso).all():
+        raise DatasetError(f"{where}: torso motion must be ({n}, 2, 3) finite affine maps; got shape {torso.shape}")
+    det = np.linalg.det(torso[:, :, :2])
+    if (np.abs(det) < 1e-6).any():
+        raise DatasetError(f"{where}: torso motion of frame {int(np.argmin(np.abs(det)))} is singular")
 
 
 def _check_eye(eye: np.ndarray | None, n: int, where: str) -> None:
@@ -507,6 +541,45 @@ def check_poses(poses: np.ndarray, where: str) -> None:
     det = np.linalg.det(rot)
     if np.any(det < 0):
         raise DatasetError(f"{where}: {int(np.sum(det < 0))} pose rotation(s) have det -1 (a mirror image, not a rotation), first at frame {int(np.argmax(det < 0))}")
+
+
+@dataclass
+class DatasetTracks:
+    """A dataset's per-frame tracks without its frames: what rendering new audio over the
+    dataset's pose track reads (the torso's motion with the pose of the frame it moved in).
+
+    Attributes:
+        meta: The scene's metadata.
+        poses: ``(N, 4, 4)`` head poses.
+        eye: ``(N,)`` eye openness, or ``None``.
+        torso: ``(N, 2, 3)`` torso motion, or ``None``.
+    """
+
+    meta: SceneMeta
+    poses: np.ndarray
+    eye: np.ndarray | None = None
+    torso: np.ndarray | None = None
+
+
+def read_tracks(root: str | Path) -> DatasetTracks:
+    """A dataset folder's :class:`DatasetTracks` (checked as :func:`load_dataset` checks them).
+
+    Raises:
+        DatasetError: No dataset there, or a track of the wrong shape.
+    """
+    files = DatasetFolder(Path(root))
+    meta = read_meta(root)
+    if not files.poses.exists():
+        raise DatasetError(f"{root}: no {files.poses.name}")
+    poses = np.load(files.poses)
+    check_poses(poses, str(files.poses))
+    if len(poses) != meta.n_frames:
+        raise DatasetError(f"{files.poses}: {len(poses)} poses for {meta.n_frames} frames")
+    eye = np.load(files.eye) if files.eye.exists() else None
+    _check_eye(eye, meta.n_frames, str(root))
+    torso = np.load(files.torso) if files.torso.exists() else None
+    check_torso(torso, meta.n_frames, str(root))
+    return DatasetTracks(meta, poses, eye, torso)
 
 
 def read_meta(root: str | Path) -> SceneMeta:
@@ -603,8 +676,10 @@ def load_dataset(root: str | Path, *, truth: bool = True) -> TalkingHeadDataset:
     landmarks = np.load(files.landmarks) if files.landmarks.exists() else None
     if landmarks is not None and landmarks.shape != (n, 68, 2):
         raise DatasetError(f"{root}: {files.landmarks.name} has shape {landmarks.shape}; expected ({n}, 68, 2)")
+    torso = np.load(files.torso) if files.torso.exists() else None
+    check_torso(torso, n, str(root))
     tr = None
     if truth and files.truth.is_dir():
         true_eye = np.load(files.truth_file("eye")) if files.truth_file("eye").exists() else None
         tr = Truth(*(np.load(files.truth_file(k)) for k in ("poses", "parsing", "depth", "jaw")), true_eye)
-    return TalkingHeadDataset(root, meta, frames, parsing, background, poses, features, audio, tr, eye, landmarks)
+    return TalkingHeadDataset(root, meta, frames, parsing, background, poses, features, audio, tr, eye, landmarks, torso)

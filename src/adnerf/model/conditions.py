@@ -29,7 +29,10 @@ from torch import Tensor
 from ..fields import POSE_CODE_DIM
 from ..pose import HeadPose
 
-__all__ = ["EYE_FREQUENCIES", "FrameCondition", "MOUTH_FREQUENCIES", "SIGNALS", "SIGNAL_WIDTHS", "Signal", "eye_code", "mouth_code", "register_signal", "signal_width"]
+__all__ = [
+    "EYE_FREQUENCIES", "FrameCondition", "MOUTH_FREQUENCIES", "SIGNALS", "SIGNAL_WIDTHS", "Signal", "eye_code", "mouth_code", "register_signal", "signal_width",
+    "torso_rays_map",
+]  # fmt: skip
 
 EYE_FREQUENCIES = 4
 MOUTH_FREQUENCIES = 3
@@ -125,9 +128,38 @@ def mouth_code(mouth: Tensor) -> Tensor:
     return torch.cat([torch.sin(angle), 1.0 - torch.cos(angle)], dim=-1).flatten(-2)
 
 
+def torso_rays_map(maps: np.ndarray, intrinsics: Sequence[float]) -> np.ndarray:
+    """The maps ``(N, 9)`` (row-major ``3 x 3``) of camera-ray directions that draw a reference
+    picture moved by pixel affine maps ``(N, 2, 3)`` (``x' = A x + b``, reference pixels to the
+    frame's: a dataset's ``torso.npy``) through a pinhole of ``intrinsics`` ``(fx, fy, cx, cy)``.
+
+    The frame's pixel ``u`` shows the reference's pixel ``A^-1 (u - b)``; in normalised image
+    coordinates ``n = F^-1 (u - c)`` (``F = diag(fx, fy)``) that is ``M n + m`` with
+    ``M = F^-1 A^-1 F`` and ``m = F^-1 (A^-1 (c - b) - c)``, so a direction ``d = (n, 1) z`` goes
+    to ``H d`` with ``H = [[M, m], [0, 0, 1]]`` (its depth ``z`` kept). The identity map gives the
+    identity.
+    """
+    maps = np.asarray(maps, dtype=np.float64)
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    F, c = np.diag([fx, fy]), np.array([cx, cy])
+    inv = np.linalg.inv(maps[:, :, :2])  # (N, 2, 2)
+    H = np.zeros((len(maps), 3, 3))
+    H[:, :2, :2] = np.linalg.inv(F) @ inv @ F
+    H[:, :2, 2] = (inv @ (c - maps[:, :, 2])[..., None])[..., 0] - c
+    H[:, :2, 2] /= np.array([fx, fy])
+    H[:, 2, 2] = 1.0
+    return H.reshape(len(maps), 9)
+
+
+def _torso_track(ds: Any) -> np.ndarray | None:
+    return None if ds.torso is None else torso_rays_map(ds.torso, ds.meta.intrinsics)
+
+
 register_signal(Signal("pose", POSE_CODE_DIM))  # the head pose's continuous code (HeadPose.code)
 register_signal(Signal("eye", 2 * EYE_FREQUENCIES, eye_code))  # eye openness (a dataset's eye track)
 register_signal(Signal("mouth", 2 * 2 * MOUTH_FREQUENCIES, mouth_code))  # the mouth's opening and width, standardised
+# The torso's motion in the image (a layer's warp, not a field input): its rays' map, identity at rest.
+register_signal(Signal("torso_motion", 9, track=_torso_track, rest=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)))
 
 
 @dataclass

@@ -11,7 +11,12 @@ builds AD-NeRF's two). A :class:`RadianceLayer` owns everything that differs bet
 - its coarse and fine **fields** (:class:`~adnerf.fields.RadianceField` or anything called as
   ``field(positions, directions, condition)``);
 - the **conditions** it reads from a :class:`~adnerf.model.conditions.FrameCondition`, concatenated
-  in order into its fields' conditioning vector.
+  in order into its fields' conditioning vector;
+- optionally a **warp**: a signal of the frame (``(9,)``, a row-major ``3 x 3`` map ``H``) that
+  turns each camera ray's direction to that of ``H d`` about its origin, the camera centre, before the
+  layer's space (the torso's measured motion in the image,
+  :func:`~adnerf.model.conditions.torso_rays_map`): the field learns one reference picture of
+  what moves, and a frame's rays look where its pixels were in that picture.
 
 Rays given to a layer are camera rays; the ``t`` values it returns (depth) are the camera rays'
 because a rigid move keeps distances. Geometry runs in the rays' dtype (float64 in adnerf); the
@@ -65,6 +70,7 @@ class RadianceLayer(nn.Module):
         samples: ``(coarse, fine)`` samples per ray; fine 0 turns the fine pass off.
         space: ``"canonical"`` or ``"camera"``.
         conditions: Signal names of :class:`~adnerf.model.conditions.FrameCondition` its fields read.
+        warp: The signal whose value moves its rays (see the module docstring), or ``None``.
         occupancy_resolution: Cells per axis of its occupancy grid; 0: no grid.
         occupancy_threshold: Density (1 / scene unit) below which a cell is empty.
     """
@@ -79,6 +85,7 @@ class RadianceLayer(nn.Module):
         *,
         space: str,
         conditions: Sequence[str],
+        warp: str | None = None,
         occupancy_resolution: int = 0,
         occupancy_threshold: float = 0.01,
     ) -> None:
@@ -88,6 +95,7 @@ class RadianceLayer(nn.Module):
         self.name = name
         self.space = space
         self.conditions = tuple(conditions)
+        self.warp = warp
         self.aabb: Box = (tuple(float(v) for v in aabb[0]), tuple(float(v) for v in aabb[1]))  # type: ignore[assignment]
         self.samples = (int(samples[0]), int(samples[1]))
         self.coarse = coarse
@@ -100,6 +108,23 @@ class RadianceLayer(nn.Module):
     def canonical(self) -> bool:
         """Whether the layer lives in the head's canonical frame."""
         return self.space == "canonical"
+
+    def warped(self, rays: RayBundle, cond: FrameCondition) -> RayBundle:
+        """Camera rays ``(R,)`` moved by the layer's warp of ``cond`` (unchanged without one):
+        directions ``H d`` scaled back to the length of ``d``, origins kept.
+
+        Raises:
+            KeyError: The frame carries no value of the warp's signal.
+        """
+        if self.warp is None:
+            return rays
+        if self.warp not in cond.extra:
+            raise KeyError(f"layer {self.name!r} is moved by the {self.warp!r} signal, which this frame does not carry")
+        d = rays.directions
+        H = cond.extra[self.warp].to(d.dtype).reshape(*cond.extra[self.warp].shape[:-1], 3, 3)
+        moved = (H @ d.unsqueeze(-1)).squeeze(-1)
+        # Kept at the camera ray's length, so that t stays a distance as it is for unit rays.
+        return RayBundle(rays.origins, moved * (torch.linalg.vector_norm(d, dim=-1, keepdim=True) / torch.linalg.vector_norm(moved, dim=-1, keepdim=True)))
 
     def to_space(self, rays: RayBundle, pose: HeadPose | None) -> RayBundle:
         """Camera rays moved into the layer's space (canonical: by the inverse of ``pose``)."""
@@ -163,7 +188,7 @@ class RadianceLayer(nn.Module):
             jitter: Random samples (training).
             generator: Random generator of the samples.
         """
-        moved = self.to_space(rays, cond.pose)
+        moved = self.to_space(self.warped(rays, cond), cond.pose)
         coarse, fine, per_ray = self._fields(cond)
         return self.renderer(moved.origins).render_rays(moved, coarse, fine, background=background, occupancy=self.occupied(), jitter=jitter, generator=generator, **per_ray)
 
@@ -173,7 +198,7 @@ class RadianceLayer(nn.Module):
         Returns:
             ``(hit (R,) bool, their composite or None when none hits)``.
         """
-        moved = self.to_space(rays, cond.pose)
+        moved = self.to_space(self.warped(rays, cond), cond.pose)
         renderer = self.renderer(moved.origins)
         near, far = renderer.coarse_sampler.bounds(moved)
         hit = far > near
@@ -214,4 +239,5 @@ class RadianceLayer(nn.Module):
         return self.occupancy.occupied.float().mean().item()
 
     def extra_repr(self) -> str:
-        return f"name={self.name!r}, space={self.space!r}, conditions={self.conditions}, samples={self.samples}"
+        warp = "" if self.warp is None else f", warp={self.warp!r}"
+        return f"name={self.name!r}, space={self.space!r}, conditions={self.conditions}{warp}, samples={self.samples}"

@@ -3,8 +3,9 @@
 The one rendering loop of the product, below both the ``render`` command
 (:mod:`adnerf.commands.render_video`) and the evaluation (:mod:`adnerf.evaluation.evaluate`):
 each frame's pose (rotated by per-frame yaw, pitch and roll about the head centre), its audio
-code, its eye openness, and what the torso reads under an edit
-(:func:`~adnerf.model.pose_range.torso_reads`).
+code, its eye openness, what the torso reads under an edit
+(:func:`~adnerf.model.pose_range.torso_reads`), and the further signals the model reads per frame
+(the torso's motion: :func:`frame_signals` of the frames whose poses are played).
 """
 
 from __future__ import annotations
@@ -19,13 +20,14 @@ import torch
 from ..cameras import Camera
 from ..compositor import Layer
 from ..pose import HeadPose
-from ..formats.dataset import DatasetError, check_poses
+from ..formats.dataset import DatasetError, DatasetTracks, TalkingHeadDataset, check_poses
 from ..formats.run_folder import scene_meta
+from .conditions import SIGNALS
 from .pose_range import edit_poses, torso_reads
 from .run_folder import Run
 from .talking_head import FrameRender, render_frame
 
-__all__ = ["RenderError", "RenderedClip", "checked_poses", "frame_setup", "pingpong_index", "render_frames", "render_layers", "render_one"]
+__all__ = ["RenderError", "RenderedClip", "checked_poses", "frame_setup", "frame_signals", "pingpong_index", "render_frames", "render_layers", "render_one"]
 
 
 class RenderError(ValueError):
@@ -89,6 +91,36 @@ def frame_setup(run: Run, plate: np.ndarray) -> tuple[Camera, torch.Tensor]:
     return camera, torch.as_tensor(plate, dtype=torch.float32, device=dev)
 
 
+def frame_signals(run: Run, ds: "TalkingHeadDataset | DatasetTracks", frames: Sequence[int] | np.ndarray) -> dict[str, np.ndarray]:
+    """The values ``(len(frames), k)`` of the run's
+    :attr:`~adnerf.model.talking_head.ModelConfig.frame_signals` on dataset frames (a loaded
+    dataset, or its tracks alone: :func:`~adnerf.formats.dataset.read_tracks`), read as training
+    reads them (each signal's ``track``): what a render of those frames' poses gives each frame
+    (the torso's motion with the pose of the frame it moved in). A signal the dataset has no
+    track of is left out (its ``rest`` value)."""
+    out = {}
+    for name in run.model.config.frame_signals:
+        track = SIGNALS[name].track
+        values = None if track is None else track(ds)
+        if values is not None:
+            out[name] = np.asarray(values, dtype=np.float64).reshape(ds.meta.n_frames, -1)[np.asarray(frames, dtype=np.int64)]
+    return out
+
+
+def _checked_signals(run: Run, signals: Mapping[str, np.ndarray] | None, n: int) -> dict[str, np.ndarray]:
+    """``signals`` checked against the run's frame signals: known names, ``(n, width)`` finite values."""
+    known = run.model.config.frame_signals
+    out = {}
+    for name, values in (signals or {}).items():
+        if name not in known:
+            raise RenderError(f"the run reads no {name!r} signal; it reads {', '.join(known) or 'none'}")
+        values = np.asarray(values, dtype=np.float64)
+        if values.shape != (n, SIGNALS[name].width) or not np.isfinite(values).all():
+            raise RenderError(f"the {name} signal must be ({n}, {SIGNALS[name].width}) finite values, one row per frame; got shape {values.shape}")
+        out[name] = values
+    return out
+
+
 def render_layers(
     run: Run,
     camera: Camera,
@@ -100,29 +132,36 @@ def render_layers(
     read_pose: np.ndarray | None = None,
     box: tuple[int, int, int, int] | None = None,
     given: Mapping[str, tuple[Layer, torch.Tensor]] | None = None,
+    signals: Mapping[str, np.ndarray] | None = None,
 ) -> FrameRender:
     """One frame as :class:`~adnerf.model.talking_head.FrameRender` (its layers, opacities and
-    depths; the pixels of ``box`` only when given): what :func:`render_one` and :func:`render_frames`
-    render every frame with."""
+    depths; the pixels of ``box`` only when given; ``signals``: the frame's values of the model's
+    :attr:`~adnerf.model.talking_head.ModelConfig.frame_signals`): what :func:`render_one` and
+    :func:`render_frames` render every frame with."""
     dev = plate.device
     as_pose = lambda m: HeadPose.from_matrix(torch.as_tensor(m, dtype=torch.float64, device=dev))  # noqa: E731
     return render_frame(
-        run.model, camera, as_pose(pose), code, plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=None if read_pose is None else as_pose(read_pose), box=box, given=given
-    )
+        run.model, camera, as_pose(pose), code, plate, eye=eye, layers=run.trained_layers, amp=run.train_config.amp, read_pose=None if read_pose is None else as_pose(read_pose), box=box, given=given,
+        signals=signals,
+    )  # fmt: skip
 
 
 def _u8(rgb: torch.Tensor) -> np.ndarray:
     return np.round(rgb.cpu().numpy() * 255.0).astype(np.uint8)
 
 
-def render_one(run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, code: torch.Tensor, *, eye: float | None = None, read_pose: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_one(
+    run: Run, camera: Camera, plate: torch.Tensor, pose: np.ndarray, code: torch.Tensor, *, eye: float | None = None, read_pose: np.ndarray | None = None,
+    signals: Mapping[str, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """One frame: its head pose ``(4, 4)``, audio code ``(audio_dim,)`` and eye openness (``None``:
-    open), the torso reading ``read_pose`` when given (an edit).
+    open), the torso reading ``read_pose`` when given (an edit), and the frame's further signals
+    (:func:`render_layers`).
 
     Returns:
         ``(rgb (H, W, 3) uint8, head opacity (H, W), torso opacity (H, W))``.
     """
-    out = render_layers(run, camera, plate, pose, code, eye=eye, read_pose=read_pose)
+    out = render_layers(run, camera, plate, pose, code, eye=eye, read_pose=read_pose, signals=signals)
     return _u8(out.rgb), out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
 
 
@@ -142,6 +181,7 @@ def render_frames(
     box: tuple[int, int, int, int] | None = None,
     keep: Sequence[str] = (),
     given: Mapping[str, Sequence[tuple[Layer, torch.Tensor]]] | None = None,
+    signals: Mapping[str, np.ndarray] | None = None,
 ) -> RenderedClip:
     """Render one frame per feature window.
 
@@ -170,6 +210,10 @@ def render_frames(
             :attr:`RenderedClip.kept`): composited instead of rendered. Only for a layer that
             reads nothing the two renders differ in: the torso of a head turned with
             ``torso_pose="track"`` is the un-edited torso.
+        signals: Per-frame values ``(N, k)`` of the model's
+            :attr:`~adnerf.model.talking_head.ModelConfig.frame_signals` by name (the torso's
+            motion, ``torso_motion``: :func:`frame_signals` of a dataset's frames); one left out
+            gets the signal's ``rest`` value.
     """
     model = run.model
     dev = next(model.parameters()).device
@@ -187,6 +231,7 @@ def render_frames(
         raise RenderError(f"given layers are composited as they were drawn; with torso_pose={torso_pose!r} the torso reads the edited pose")
     if eye is not None and (np.shape(eye) != (len(windows),) or not np.isfinite(eye).all()):
         raise RenderError(f"eye openness must be {len(windows)} finite values, one per frame; got shape {np.shape(eye)}")
+    signals = _checked_signals(run, signals, len(windows))
     try:
         angles = np.stack([np.broadcast_to(np.asarray(a, dtype=np.float64), (len(windows),)) for a in (yaw, pitch, roll)], axis=1)
     except ValueError:
@@ -213,7 +258,10 @@ def render_frames(
     for i in range(n):
         read = None if reads is None or not angles[i].any() else reads[i]  # an un-edited frame reads its own pose
         mine = {name: layers[i] for name, layers in given.items()}
-        out = render_layers(run, camera, plate_t, poses[i], codes[i], eye=None if eye is None else float(eye[i]), read_pose=read, box=box, given=mine or None)
+        out = render_layers(
+            run, camera, plate_t, poses[i], codes[i], eye=None if eye is None else float(eye[i]), read_pose=read, box=box, given=mine or None,
+            signals={name: values[i] for name, values in signals.items()},
+        )  # fmt: skip
         frames[i], head_op[i], torso_op[i] = _u8(out.rgb), out.head_opacity.cpu().numpy(), out.torso_opacity.cpu().numpy()
         for k, background in enumerate(others):
             over[k][i] = _u8(out.over(background))

@@ -24,12 +24,12 @@ import numpy as np
 import torch
 
 from ..audio.features import MODEL_RATE, StreamingWindows
-from ..formats.dataset import DatasetFolder
+from ..formats.dataset import DatasetFolder, read_tracks
 from ..formats.run_folder import RunFolder
 from ..io import read_audio, read_image
 from .blinks import blink_track
 from .pose_range import edit_poses, torso_reads
-from .render_clip import RenderError, checked_poses, frame_setup, pingpong_index, render_one  # pingpong_index: re-exported
+from .render_clip import RenderError, checked_poses, frame_setup, frame_signals, pingpong_index, render_one  # pingpong_index: re-exported
 from .run_folder import Run
 
 __all__ = ["Streamer", "pingpong_index", "stream_file_chunks"]
@@ -41,7 +41,8 @@ class Streamer:
     Args:
         run: A loaded run trained on log-mel features.
         poses: Head poses ``(M, 4, 4)`` played forwards and backwards (default: the run's training
-            dataset's track, as ``adnerf render`` plays it).
+            dataset's track, as ``adnerf render`` plays it, each frame with the torso's motion
+            of the track's frame where the run follows it; given poses: the reference torso).
         plate: Background ``(H, W, 3)`` float in [0, 1] (default: the run's plate).
         yaw: Degrees added about the head's vertical axis (as ``render --yaw``).
         pitch: Degrees added about the horizontal axis.
@@ -82,11 +83,14 @@ class Streamer:
         angles = np.array([yaw, pitch, roll], dtype=np.float64)
         if not np.isfinite(angles).all() or np.abs(angles).max() > 180:
             raise RenderError("yaw, pitch and roll must be finite degrees within -180..180")
+        self.signals: dict[str, np.ndarray] = {}  # per track frame: the torso's motion in it
         if poses is None:
             track = DatasetFolder(run.dataset).poses
             if not track.exists():
                 raise RenderError(f"{track}: no pose track to play (the run's training dataset has moved or gone): give poses")
-            poses = np.load(track)
+            tracks = read_tracks(run.dataset)
+            poses = tracks.poses
+            self.signals = frame_signals(run, tracks, np.arange(len(poses)))
         self.run, self.fps = run, float(meta["fps"])
         self.track = checked_poses(np.asarray(poses, dtype=np.float64), "poses")
         self.angles = angles
@@ -143,12 +147,14 @@ class Streamer:
         local = torch.as_tensor(self._held[lo - self._held_from : hi - self._held_from], device=self.plate.device)
         with torch.no_grad():
             code = model.frame_codes(local, [i - lo])[0]  # neighbours clamped at the clip's ends as offline
-        track = self.track[int(pingpong_index(i, len(self.track)))][None]
+        k = int(pingpong_index(i, len(self.track)))
+        track = self.track[k][None]
         pose = edit_poses(track, self.angles[None])[0]
         reads = torso_reads("track", track, pose[None], self.run.pose_range)
         read = None if reads is None or not self.angles.any() else reads[0]
         eye = None if self.blink is None else 1.0 if self.blink == "none" else float(blink_track(np.array([i / self.fps]))[0])
-        rgb, _, _ = render_one(self.run, self.camera, self.plate, pose, code, eye=eye, read_pose=read)
+        signals = {name: values[k] for name, values in self.signals.items()}
+        rgb, _, _ = render_one(self.run, self.camera, self.plate, pose, code, eye=eye, read_pose=read, signals=signals)
         return rgb
 
 

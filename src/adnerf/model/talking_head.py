@@ -100,6 +100,8 @@ class LayerConfig:
         fine: The fine field.
         conditions: The signals it reads, in order (registered names of
             :mod:`adnerf.model.conditions`); their widths sum to the fields' ``cond_dim``.
+        warp: A registered signal whose value moves the layer's rays before its space
+            (``"torso_motion"``: the torso's measured motion in the image), or ``None``.
     """
 
     name: str
@@ -109,6 +111,7 @@ class LayerConfig:
     coarse: FieldConfig
     fine: FieldConfig
     conditions: tuple[str, ...]
+    warp: str | None = None
 
 
 @dataclass
@@ -150,6 +153,12 @@ class ModelConfig:
             frame's value from the dataset through the signal's ``track``, rendering uses its
             ``rest`` value unless given one). The signals must be registered where the model is
             built or loaded.
+        torso_motion: The torso layer follows the torso's measured motion in the image (datasets
+            with ``torso.npy``; the ``torso_motion`` signal, :func:`~adnerf.model.conditions.torso_rays_map`):
+            its field learns the reference torso and each frame's rays are moved to it; rendering
+            new audio gives each frame the motion of the pose track's frame, or none. ``False``:
+            the torso's place is what its field makes of the head pose and the audio code
+            (AD-NeRF, and runs made before the option).
     """
 
     feature_dim: int
@@ -170,6 +179,7 @@ class ModelConfig:
     head_in_front: bool = True
     mouth_dim: int = 0
     head_signals: tuple[str, ...] = ()
+    torso_motion: bool = False
 
     @property
     def layers(self) -> list[LayerConfig]:
@@ -179,7 +189,8 @@ class ModelConfig:
         stored form (:meth:`to_dict`) stays the fields' flat one, which every run written so far
         has."""
         head = LayerConfig("head", "canonical", self.head_aabb, self.head_samples, self.head, self.head_fine, self.head_conditions)
-        torso = LayerConfig("torso", "camera", self.torso_aabb, self.torso_samples, self.torso, self.torso_fine, ("audio", "pose"))
+        warp = "torso_motion" if self.torso_motion else None
+        torso = LayerConfig("torso", "camera", self.torso_aabb, self.torso_samples, self.torso, self.torso_fine, ("audio", "pose"), warp)
         return [torso, head] if self.head_in_front else [head, torso]
 
     @property
@@ -187,6 +198,12 @@ class ModelConfig:
         """What the head layer reads: the audio code, the eye openness when ``eye_dim``, the
         mouth when ``mouth_dim``, then ``head_signals``."""
         return ("audio",) + (("eye",) if self.eye_dim else ()) + (("mouth",) if self.mouth_dim else ()) + tuple(self.head_signals)
+
+    @property
+    def frame_signals(self) -> tuple[str, ...]:
+        """The registered signals a frame is given from the dataset's tracks in training (their
+        ``rest`` value, or a given one, in rendering): ``head_signals``, then the layers' warps."""
+        return tuple(self.head_signals) + tuple(layer.warp for layer in self.layers if layer.warp is not None)
 
     def to_dict(self) -> dict:
         """JSON-serialisable form."""
@@ -221,6 +238,7 @@ def model_config(
     head_samples: int = 0,
     torso_samples: int = 0,
     head_grid: int = 0,
+    torso_motion: bool = False,
 ) -> ModelConfig:
     """The model for a dataset.
 
@@ -231,8 +249,9 @@ def model_config(
     ``signals``: further registered signals the head reads (:attr:`ModelConfig.head_signals`).
     ``head_samples``, ``torso_samples``: samples per ray of each pass of the layer (0: the preset's).
     ``head_grid``: the finest plane resolution of the head's fine field (``"fast"``; 0: 256).
+    ``torso_motion``: the torso layer follows the dataset's torso motion (:attr:`ModelConfig.torso_motion`).
     """
-    config = _preset_config(meta, preset, audio_dim, eye, mouth, signals)
+    config = replace(_preset_config(meta, preset, audio_dim, eye, mouth, signals), torso_motion=torso_motion)
     if head_grid:
         if config.head_fine.encoding != "triplane":
             raise ValueError(f"head_grid sets a tri-plane's resolution; the {preset!r} preset's head has none")
@@ -300,7 +319,7 @@ def _layer(config: ModelConfig, layer: LayerConfig) -> RadianceLayer:
             raise ValueError(f"the {layer.name} layer's {which} field takes {field_config.cond_dim} condition values; its conditions {layer.conditions} are {width} wide")
     return RadianceLayer(
         layer.name, RadianceField(layer.coarse), RadianceField(layer.fine), layer.aabb, layer.samples, space=layer.space, conditions=layer.conditions,
-        occupancy_resolution=config.occupancy_resolution, occupancy_threshold=config.occupancy_threshold,
+        warp=layer.warp, occupancy_resolution=config.occupancy_resolution, occupancy_threshold=config.occupancy_threshold,
     )  # fmt: skip
 
 
@@ -365,8 +384,8 @@ class TalkingHead(nn.Module):
         code, :meth:`mouth_from_codes`). A signal the model does not read is left out.
         ``read_pose``: the pose the layers read as their pose signal (the torso's), where it
         differs from ``pose`` (which moves the head's rays); ``None``: ``pose``. ``signals``: the
-        frame's values of :attr:`ModelConfig.head_signals` by name (one left out: the signal's
-        ``rest`` value).
+        frame's values of :attr:`ModelConfig.frame_signals` by name (the head's signals and the
+        layers' warps; one left out: the signal's ``rest`` value).
 
         Raises:
             ValueError: A head signal with no value given and no ``rest`` value.
@@ -376,13 +395,14 @@ class TalkingHead(nn.Module):
             extra["eye"] = torch.as_tensor(1.0 if eye is None else eye, dtype=code.dtype, device=code.device).reshape(1)
         if self.reads_mouth:
             extra["mouth"] = (self.mouth_from_codes(code) if mouth is None else torch.as_tensor(mouth, device=code.device)).to(code.dtype).reshape(2)
-        for name in self.config.head_signals:
+        for name in self.config.frame_signals:
             value = None if signals is None else signals.get(name)
             if value is None:
                 if not SIGNALS[name].rest:
                     raise ValueError(f"the model reads the {name!r} signal, which has no rest value: give each frame's value")
                 value = SIGNALS[name].rest
-            extra[name] = torch.as_tensor(value, device=code.device).to(code.dtype).reshape(-1)
+            dtype = code.dtype if name in self.config.head_signals else torch.float64  # a layer's warp is geometry
+            extra[name] = torch.as_tensor(value, device=code.device).to(dtype).reshape(-1)
         return FrameCondition(code, pose, extra)
 
     def fit_feature_scale(self, windows: Tensor) -> None:
@@ -618,6 +638,7 @@ def render_frame(
     read_pose: HeadPose | None = None,
     box: tuple[int, int, int, int] | None = None,
     given: Mapping[str, tuple[Layer, Tensor]] | None = None,
+    signals: Mapping[str, Tensor | np.ndarray | float] | None = None,
 ) -> FrameRender:
     """Render a full frame, or the pixels of ``box`` (no gradients): the layers composited front
     to back over the plate.
@@ -641,6 +662,8 @@ def render_frame(
             the layer does not read, e.g. the torso under a turn of the head), by name: each one's
             :class:`~adnerf.compositor.Layer` (colour ``(H, W, 3)``, opacity ``(H, W)``) and depth
             ``(H, W)`` (:meth:`FrameRender.layer`); they are composited, not rendered again.
+        signals: The frame's values of :attr:`ModelConfig.frame_signals` by name (the torso's
+            motion, ``torso_motion``); one left out gets the signal's ``rest`` value.
     """
     rays = camera.rays()
     if box is not None:
@@ -658,7 +681,7 @@ def render_frame(
             if layer.rgb.shape != (H, W, 3) or layer.opacity.shape != (H, W) or depth.shape != (H, W):
                 raise ValueError(f"the given {name} layer is not a {W}x{H} picture (colour {tuple(layer.rgb.shape)}, opacity {tuple(layer.opacity.shape)}, depth {tuple(depth.shape)})")
         flat = {name: (Layer(layer.rgb.reshape(-1, 3), layer.opacity.reshape(-1)), depth.reshape(-1)) for name, (layer, depth) in given.items()}
-    drawn = _render_layers(model, rays.flatten(), model.condition(code, pose, eye, read_pose=read_pose), layers, chunk, amp, H * W, plate.device, flat)
+    drawn = _render_layers(model, rays.flatten(), model.condition(code, pose, eye, read_pose=read_pose, signals=signals), layers, chunk, amp, H * W, plate.device, flat)
     stack = composite_layers([layer for layer, _ in reversed(drawn.values())])
     stacked = Layer(stack.rgb.reshape(H, W, 3), stack.opacity.reshape(H, W))
     return FrameRender(

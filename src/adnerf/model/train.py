@@ -366,15 +366,16 @@ class Trainer:
         if self.model.reads_eye and ds.eye is None:
             raise RunError(f"the run's head reads the eye openness but {ds.root} has no {DatasetFolder(ds.root).eye.name}")
         self.eye = torch.as_tensor(ds.eye, device=device) if ds.eye is not None and self.model.reads_eye else None
-        # The head's further registered signals (ModelConfig.head_signals): each frame's value,
-        # read from the dataset by the signal's track.
+        # The further registered signals (ModelConfig.frame_signals: the head's, the layers'
+        # warps): each frame's value, read from the dataset by the signal's track.
         self.tracks: dict[str, torch.Tensor] = {}
-        for name in mcfg.head_signals:
+        for name in mcfg.frame_signals:
             track = SIGNALS[name].track  # registered: the model was built with it
             values = None if track is None else track(ds)
             if values is None:
-                raise RunError(f"the run's head reads the {name!r} signal but {ds.root} gives no value of it (register the signal with a track that reads it)")
-            self.tracks[name] = torch.as_tensor(np.asarray(values, dtype=np.float32).reshape(ds.meta.n_frames, -1), device=device)
+                raise RunError(f"the run reads the {name!r} signal but {ds.root} gives no value of it (register the signal with a track that reads it)")
+            dtype = np.float32 if name in mcfg.head_signals else np.float64  # a warp is geometry: float64
+            self.tracks[name] = torch.as_tensor(np.asarray(values, dtype=dtype).reshape(ds.meta.n_frames, -1), device=device)
         # Frames that teach the eye condition: the blinking ones (drawn more often, blink_frames).
         self.blinking = self.train_frames[torch.as_tensor(ds.eye)[self.train_frames] < BLINKING] if self.eye is not None else self.train_frames[:0]
         self.pixel_index = torch.arange(ds.meta.width * ds.meta.height, device=device)
@@ -947,8 +948,12 @@ def train(
     plan = mouth_plan(ds, tcfg)
     if not resume:
         # The head reads the eye openness when the clip blinks (else it carries nothing to learn),
-        # and the mouth when the mouth target is used and mouth_input asks for it.
-        mcfg = model_config(ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train), mouth=plan.used and tcfg.mouth_input == 1, head_samples=tcfg.head_samples, torso_samples=tcfg.torso_samples, head_grid=tcfg.head_grid)  # type: ignore[arg-type]
+        # and the mouth when the mouth target is used and mouth_input asks for it; the torso
+        # follows its motion where the dataset measured it and torso_motion asks for it.
+        mcfg = model_config(
+            ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train), mouth=plan.used and tcfg.mouth_input == 1,  # type: ignore[arg-type]
+            head_samples=tcfg.head_samples, torso_samples=tcfg.torso_samples, head_grid=tcfg.head_grid, torso_motion=ds.torso is not None and tcfg.torso_motion == 1,
+        )  # fmt: skip
     if mcfg.feature_dim != ds.meta.feature_dim:
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")
     stages = default_stages(tcfg)

@@ -77,6 +77,10 @@ class TrainConfig:
         head_grid: Finest plane resolution of the head's fine tri-plane field (fast preset), in
             cells a side; 0: the preset's (256). Finer planes than a frame has pixels across
             cannot be taught cell by cell, and each one costs time in every step.
+        torso_motion: 1: where the dataset has the torso's motion (``torso.npy``), the torso layer
+            follows it (:attr:`ModelConfig.torso_motion <adnerf.model.talking_head.ModelConfig.torso_motion>`;
+            ``docs/decisions.md``, *The torso follows its own motion*); 0: the torso's place is
+            what its field makes of the head pose and audio code (AD-NeRF).
     """
 
     head_iters: int = 3600
@@ -94,6 +98,7 @@ class TrainConfig:
     lip_frames: int = 64
     lip_min_signal: float = 0.2
     mouth_input: int = 0
+    torso_motion: int = 1
     torso_person_rays: float = 0.5
     mask_weight: float = 0.1
     occupancy_start: float = 0.1
@@ -167,6 +172,8 @@ class TrainConfig:
             raise ValueError(f"lip_frames must be >= 1; got {self.lip_frames}")
         if self.mouth_input not in (0, 1):
             raise ValueError(f"mouth_input is 0 or 1; got {self.mouth_input}")
+        if self.torso_motion not in (0, 1):
+            raise ValueError(f"torso_motion is 0 or 1; got {self.torso_motion}")
         if not -1 <= self.lip_min_signal <= 1:
             raise ValueError(f"lip_min_signal is a correlation, in [-1, 1]; got {self.lip_min_signal}")
         if not (0 <= self.mouth_rays <= 1 and 0 <= self.torso_person_rays <= 1 and 0 <= self.eye_rays <= 1 and 0 <= self.blink_frames <= 1):
@@ -205,7 +212,7 @@ class TrainConfig:
 
 
 PRESETS = ("fast", "paper")
-LATER_KEYS: dict[str, object] = {"lip_weight": 0.0, "mouth_input": 0}
+LATER_KEYS: dict[str, object] = {"lip_weight": 0.0, "mouth_input": 0, "torso_motion": 0}
 """Keys added to the schedule after runs were written without them, with the value those runs
 trained with (they trained the audio code from the photometric loss alone)."""
 _FIELD_TYPES: dict[str, type] = {f.name: {"int": int, "float": float, "str": str}[f.type] for f in fields(TrainConfig)}  # type: ignore[index]

@@ -59,6 +59,7 @@ from ..formats.dataset import LABEL_HEAD, LABEL_TORSO, SceneMeta, save_dataset
 from ..formats.outputs import check_folder_output
 from .landmarks import eye_centres_px, eye_openness, mouth_centres
 from .pipeline import PreprocessError, scene_bounds
+from .torso_motion import torso_motion
 
 __all__ = ["adnerf_pose_to_ours", "import_adnerf", "ours_pose_to_adnerf", "parse_adnerf_parsing"]
 
@@ -293,7 +294,11 @@ def import_adnerf(
     for note in notes:
         warnings.warn(note, stacklevel=2)
     eye = None if landmarks is None else eye_openness(landmarks)
-    save_dataset(out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, eye=eye, landmarks=landmarks, overwrite=overwrite, inputs=inputs)
+    torso = torso_motion(frames, labels)  # how the shoulders move, as preprocess measures it
+    save_dataset(
+        out, meta, frames=frames, parsing=labels, background=background, poses=poses, features=features, audio=track, eye=eye, landmarks=landmarks,
+        torso=torso.maps, overwrite=overwrite, inputs=inputs,
+    )  # fmt: skip
     return {
         "dataset": str(out),
         "frames": n,
@@ -303,5 +308,6 @@ def import_adnerf(
         "scale": scale,
         "features": list(features.shape),
         "landmarks": landmarks is not None,
+        "torso_motion": torso.report(),
         "notes": notes,
     }

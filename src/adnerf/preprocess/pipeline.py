@@ -18,7 +18,8 @@ settings changed):
                 similarity alignment (:func:`.headpose.chain_segments`).
 6. ``plate``    background plate (:mod:`.plate`).
 7. ``write``    bounds (the mouth point triangulated from the lip landmarks under the head
-                poses), splits, ``meta.json``, ``landmarks.npy``, the report
+                poses), splits, ``meta.json``, ``landmarks.npy``, the torso's motion in the
+                image (``torso.npy``, :mod:`.torso_motion`), the report
                 (``preprocess_report.json`` and ``preprocess_report.png``); the dataset is written
                 to a temporary folder and renamed into place, then the work folder is removed.
 
@@ -69,6 +70,7 @@ from .landmarks import (
     pose_landmarks,
 )
 from .parsing import JAW_MARGIN, layer_check, split_at_landmarks, torso_check
+from .torso_motion import torso_motion
 
 __all__ = ["PIPELINE", "PreprocessConfig", "PreprocessError", "STEPS", "Step", "StepContext", "preprocess_video", "run_step", "step_bars"]
 
@@ -858,6 +860,18 @@ def _layer_checks(report: dict, labels: np.ndarray, landmarks: np.ndarray | None
         report["layers"] = {"note": "no landmarks (--face none): the fraction of the mouth in the head layer is not known"}
 
 
+def _torso_motion(frames: np.ndarray, labels: np.ndarray, report: dict, bar: Bar) -> np.ndarray:
+    """The torso's motion in each frame (``torso.npy``), with the report's ``torso_motion`` entry
+    (and a warning where frames could not be registered)."""
+    t0 = time.perf_counter()
+    torso = torso_motion(frames, labels, progress=lambda done, total: bar("torso motion", done, total))
+    report["torso_motion"] = {**torso.report(), "seconds": round(time.perf_counter() - t0, 3)}
+    if torso.failed:
+        msg = f"the torso's motion could not be measured in {len(torso.failed)} of {len(frames)} frames (given their neighbours'): check the parsing's torso"
+        _report_warning(report, "torso_motion_warning", msg)
+    return torso.maps
+
+
 def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, docs: dict, bar: Bar, overwrite: bool) -> dict:
     t0 = time.perf_counter()
     info = work.load_json("decode")
@@ -912,7 +926,11 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         cv2.imwrite(str(folder.report_image), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
     eye = None if landmarks is None else eye_openness(landmarks)  # the head's eye condition
-    save_dataset(out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, eye=eye, landmarks=landmarks, extra=extra, overwrite=overwrite, inputs=[video])
+    torso = _torso_motion(frames, labels, report, bar)
+    save_dataset(
+        out, meta, frames=frames, parsing=labels, background=plate, poses=poses, features=features, audio=audio, eye=eye, landmarks=landmarks, torso=torso,
+        extra=extra, overwrite=overwrite, inputs=[video],
+    )  # fmt: skip
     bar("write", 1, 1)
     return report
 
