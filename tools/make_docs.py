@@ -143,6 +143,14 @@ def real_minute() -> list[str]:
               num(r["lmd_mouth_px"]), num(r["mouth_open_corr"]), num(r["mouth_open_slope"]), num(r["mouth_open_std_ratio"])] for r in m256["mouth_target"]["rows"]],
         ),
         "",
+        f"The torso following its measured motion ({m256['torso_motion']['what']}; `{m256['torso_motion']['command']}`):",
+        "",
+        table(
+            ["clip", "torso", "PSNR frame / head / mouth (dB)", "SSIM", "LMD mouth / all (px)", "correlation", "slope"],
+            [[r["clip"], r["torso"], f"{num(r['psnr'])} / {num(r['psnr_head'])} / {num(r['psnr_mouth'])}", num(r["ssim"], 3),
+              f"{num(r['lmd_mouth_px'])} / {num(r['lmd_all_px'])}", num(r["mouth_open_corr"]), num(r["mouth_open_slope"])] for r in m256["torso_motion"]["rows"]],
+        ),
+        "",
         "Preprocessing, seconds per step:",
         "",
         table(

@@ -22,6 +22,7 @@ the full frame's with its shift scaled by ``1 / s`` (each axis by its own scale)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -99,7 +100,7 @@ def torso_motion(
     references: int = 64,
     iterations: int = 50,
     work_width: int = 256,
-    progress=None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> TorsoMotion:
     """Each frame's affine map from the reference torso (see the module docstring).
 
