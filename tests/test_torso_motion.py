@@ -133,7 +133,7 @@ def test_the_dataset_keeps_the_torso_motion(tmp_path) -> None:  # noqa: ANN001
     schedule asks (torso_motion 1) and the dataset has it; training hands each frame its own map,
     and a render of dataset frames gets the same maps back."""
     from adnerf.formats.dataset import read_tracks, save_dataset
-    from adnerf.model.render_clip import frame_signals
+    from adnerf.model.render_clip import RenderError, frame_signals, render_frames
     from adnerf.model.train import TrainConfig, Trainer, train
     from adnerf.model.run_folder import load_run
     from adnerf.synth import SynthConfig, synthesize
@@ -150,15 +150,25 @@ def test_the_dataset_keeps_the_torso_motion(tmp_path) -> None:  # noqa: ANN001
     ds = load_dataset(root)
     np.testing.assert_array_equal(ds.torso, maps)
     assert ds.fingerprint() != plain.fingerprint() and np.array_equal(read_tracks(root).torso, maps)
-    run = train(root, tmp_path / "run", config=TrainConfig(head_iters=2, torso_iters=2, rays=64), device="cpu", progress=False)
+    # Two frames a step: the torso's rays carry each one's own map (per-ray conditions).
+    run = train(root, tmp_path / "run", config=TrainConfig(head_iters=2, torso_iters=2, rays=64, frames=2), device="cpu", progress=False)
     loaded = load_run(run)
-    assert loaded.model.config.torso_motion
+    assert loaded.model.config.torso_motion and loaded.steps["torso"] == 2
     tr = Trainer(tmp_path / "t", ds, loaded.model.config, TrainConfig(head_iters=1, torso_iters=1, rays=64), "cpu", False)
     code = torch.zeros(loaded.model.config.audio_dim)
     want = torso_rays_map(maps, ds.meta.intrinsics)
     for f in (0, 9):
         torch.testing.assert_close(tr.condition(f, code, ds.head_pose(f)).extra["torso_motion"], torch.as_tensor(want[f]), rtol=0, atol=0)
     np.testing.assert_array_equal(frame_signals(loaded, read_tracks(root), [9, 0])["torso_motion"], want[[9, 0]])
+    # Rendered with the frames' own maps, the torso is where each frame had it; a wrong signal is refused.
+    plate = ds.background.astype(np.float32) / 255.0
+    frames = [0, 9]
+    own = render_frames(loaded, ds.features[frames], ds.poses[frames], plate, signals=frame_signals(loaded, ds, frames))
+    rest = render_frames(loaded, ds.features[frames], ds.poses[frames], plate)
+    assert not np.array_equal(own.torso_opacity, rest.torso_opacity) and np.array_equal(own.head_opacity, rest.head_opacity)
+    for bad, match in (({"brow": want[:2]}, "reads no 'brow'"), ({"torso_motion": want[:1]}, r"must be \(2, 9\)")):
+        with pytest.raises(RenderError, match=match):
+            render_frames(loaded, ds.features[frames], ds.poses[frames], plate, signals=bad)
     off = train(root, tmp_path / "off", config=TrainConfig(head_iters=2, torso_iters=0, rays=64, torso_motion=0), device="cpu", progress=False)
     assert not load_run(off).model.config.torso_motion and load_run(off).model.config.frame_signals == ()
     assert not load_run(train(plain.root, tmp_path / "none", config=TrainConfig(head_iters=2, torso_iters=0, rays=64), device="cpu", progress=False)).model.config.torso_motion
