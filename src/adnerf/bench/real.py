@@ -142,7 +142,8 @@ def drive_with_speech(run, ds, audio_path: str | Path, video: str | Path | None 
         the frames); with ``syncnet`` (and 25 frames per second) also its scores.
     """
     from ..audio.features import voiced_loudness
-    from ..commands.render_video import audio_frames, frame_signals, pingpong, render_frames
+    from ..commands.render_video import audio_frames, pingpong, render_frames
+    from ..model.render_clip import frame_signals
     from ..evaluation.landmark_metrics import mouth_opening
     from ..evaluation.syncnet import SYNCNET_FPS, face_crops, sync_scores
     from ..io import AudioTrack, read_audio, write_video

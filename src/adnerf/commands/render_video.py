@@ -27,10 +27,10 @@ from ..audio.features import (
 )
 from ..io import AudioTrack, MediaError, read_audio, read_image, read_rgb, write_video
 from ..model.blinks import count_blinks, eye_track
-from ..model.render_clip import RenderedClip, RenderError, checked_poses, frame_signals, pingpong_index, render_frames  # re-exported: the command's refusals and its loop
+from ..model.render_clip import RenderedClip, RenderError, checked_poses, dataset_track, pingpong_index, render_frames  # re-exported: the command's refusals and its loop
 from ..model.run_folder import Run
 from ..lock import writes_folder
-from ..formats.dataset import DatasetError, DatasetFolder, read_tracks
+from ..formats.dataset import DatasetFolder
 from ..formats.outputs import check_file_output, check_frames_folder
 from ..formats.run_folder import RunFolder
 from ..preprocess.framing import Framing
@@ -331,13 +331,9 @@ def _dataset_poses(run: Run, from_dataset: str | Path | None, n: int) -> tuple[n
     if not track.exists():
         hint = "" if from_dataset is not None else " (the run's training dataset has moved or gone: take poses from a dataset with --from DATASET, or give them with --poses FILE.npy)"
         raise RenderError(f"{track.parent}: no {track.name} to take poses from{hint}")
-    poses = checked_poses(np.load(track), str(track))
+    poses, signals = dataset_track(run, folder)
     index = pingpong(np.arange(len(poses)), n)
-    try:
-        signals = frame_signals(run, read_tracks(folder), index) if run.model.config.frame_signals else {}
-    except DatasetError as exc:
-        raise RenderError(str(exc)) from exc
-    return poses[index], signals
+    return poses[index], {name: values[index] for name, values in signals.items()}
 
 
 def _write_frames(folder: Path, frames: np.ndarray) -> None:

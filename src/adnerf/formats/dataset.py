@@ -575,11 +575,16 @@ def read_tracks(root: str | Path) -> DatasetTracks:
     check_poses(poses, str(files.poses))
     if len(poses) != meta.n_frames:
         raise DatasetError(f"{files.poses}: {len(poses)} poses for {meta.n_frames} frames")
+    return DatasetTracks(meta, poses, *_eye_and_torso(files, meta.n_frames))
+
+
+def _eye_and_torso(files: DatasetFolder, n: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The optional per-frame tracks ``eye.npy`` and ``torso.npy`` of ``n`` frames, checked."""
     eye = np.load(files.eye) if files.eye.exists() else None
-    _check_eye(eye, meta.n_frames, str(root))
+    _check_eye(eye, n, str(files.root))
     torso = np.load(files.torso) if files.torso.exists() else None
-    check_torso(torso, meta.n_frames, str(root))
-    return DatasetTracks(meta, poses, eye, torso)
+    check_torso(torso, n, str(files.root))
+    return eye, torso
 
 
 def read_meta(root: str | Path) -> SceneMeta:
@@ -671,13 +676,10 @@ def load_dataset(root: str | Path, *, truth: bool = True) -> TalkingHeadDataset:
         audio = read_audio(files.audio)
     except MediaError as exc:
         raise DatasetError(str(exc)) from exc
-    eye = np.load(files.eye) if files.eye.exists() else None
-    _check_eye(eye, n, str(root))
+    eye, torso = _eye_and_torso(files, n)
     landmarks = np.load(files.landmarks) if files.landmarks.exists() else None
     if landmarks is not None and landmarks.shape != (n, 68, 2):
         raise DatasetError(f"{root}: {files.landmarks.name} has shape {landmarks.shape}; expected ({n}, 68, 2)")
-    torso = np.load(files.torso) if files.torso.exists() else None
-    check_torso(torso, n, str(root))
     tr = None
     if truth and files.truth.is_dir():
         true_eye = np.load(files.truth_file("eye")) if files.truth_file("eye").exists() else None

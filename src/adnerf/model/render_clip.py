@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -20,14 +21,14 @@ import torch
 from ..cameras import Camera
 from ..compositor import Layer
 from ..pose import HeadPose
-from ..formats.dataset import DatasetError, DatasetTracks, TalkingHeadDataset, check_poses
+from ..formats.dataset import DatasetError, DatasetFolder, DatasetTracks, TalkingHeadDataset, check_poses, read_tracks
 from ..formats.run_folder import scene_meta
 from .conditions import SIGNALS
 from .pose_range import edit_poses, torso_reads
 from .run_folder import Run
 from .talking_head import FrameRender, render_frame
 
-__all__ = ["RenderError", "RenderedClip", "checked_poses", "frame_setup", "frame_signals", "pingpong_index", "render_frames", "render_layers", "render_one"]
+__all__ = ["RenderError", "RenderedClip", "checked_poses", "dataset_track", "frame_setup", "frame_signals", "pingpong_index", "render_frames", "render_layers", "render_one"]
 
 
 class RenderError(ValueError):
@@ -105,6 +106,24 @@ def frame_signals(run: Run, ds: "TalkingHeadDataset | DatasetTracks", frames: Se
         if values is not None:
             out[name] = np.asarray(values, dtype=np.float64).reshape(ds.meta.n_frames, -1)[np.asarray(frames, dtype=np.int64)]
     return out
+
+
+def dataset_track(run: Run, folder: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """A dataset's pose track ``(M, 4, 4)`` and the run's frame signals on its frames
+    (:func:`frame_signals`; ``{}`` for a run that reads none, whose render needs only the poses):
+    what a render over that track plays (``adnerf render``, a stream), frame by frame.
+
+    Raises:
+        RenderError: Poses that are not rigid motions, or a dataset whose tracks do not read.
+    """
+    poses_file = DatasetFolder(Path(folder)).poses
+    if not run.model.config.frame_signals:
+        return checked_poses(np.load(poses_file), str(poses_file)), {}
+    try:
+        tracks = read_tracks(folder)
+    except DatasetError as exc:
+        raise RenderError(str(exc)) from exc
+    return checked_poses(tracks.poses, str(poses_file)), frame_signals(run, tracks, np.arange(len(tracks.poses)))
 
 
 def _checked_signals(run: Run, signals: Mapping[str, np.ndarray] | None, n: int) -> dict[str, np.ndarray]:

@@ -24,12 +24,12 @@ import numpy as np
 import torch
 
 from ..audio.features import MODEL_RATE, StreamingWindows
-from ..formats.dataset import DatasetFolder, read_tracks
+from ..formats.dataset import DatasetFolder
 from ..formats.run_folder import RunFolder
 from ..io import read_audio, read_image
 from .blinks import blink_track
 from .pose_range import edit_poses, torso_reads
-from .render_clip import RenderError, checked_poses, frame_setup, frame_signals, pingpong_index, render_one  # pingpong_index: re-exported
+from .render_clip import RenderError, checked_poses, dataset_track, frame_setup, pingpong_index, render_one  # pingpong_index: re-exported
 from .run_folder import Run
 
 __all__ = ["Streamer", "pingpong_index", "stream_file_chunks"]
@@ -88,9 +88,7 @@ class Streamer:
             track = DatasetFolder(run.dataset).poses
             if not track.exists():
                 raise RenderError(f"{track}: no pose track to play (the run's training dataset has moved or gone): give poses")
-            tracks = read_tracks(run.dataset)
-            poses = tracks.poses
-            self.signals = frame_signals(run, tracks, np.arange(len(poses)))
+            poses, self.signals = dataset_track(run, run.dataset)
         self.run, self.fps = run, float(meta["fps"])
         self.track = checked_poses(np.asarray(poses, dtype=np.float64), "poses")
         self.angles = angles
