@@ -17,10 +17,10 @@ from kornia.metrics import psnr as kornia_psnr
 from adnerf.model import render_clip  # the render loop: what the spies replace
 from adnerf.cli import main
 from adnerf.commands.render_video import audio_frames, render_frames
-from adnerf.evaluation.evaluate import head_metrics, image_metrics, mouth_boxes
+from adnerf.evaluation.evaluate import eye_boxes_at, eye_psnr, head_metrics, image_metrics, mouth_boxes
 from adnerf.io import AudioTrack, read_video
 from adnerf.metrics import PSNR_CAP_DB, psnr, psnr_from_mse
-from adnerf.formats.dataset import LABEL_HEAD, LABEL_TORSO, load_dataset
+from adnerf.formats.dataset import EYE_CROP, LABEL_HEAD, LABEL_TORSO, load_dataset
 from adnerf.model.talking_head import model_config
 from adnerf.model.train import TrainConfig, Trainer, load_run, train
 from adnerf.pose import HeadPose
@@ -109,6 +109,36 @@ def test_mouth_rays_are_drawn_around_the_mouth(scene: Path, tmp_path: Path) -> N
         assert abs(u.mean() - mu) <= 1.0 and abs(v.mean() - mv) <= 1.0  # centred on the mouth
         x0, y0, x1, y1 = mouth_boxes(ds, [frame])[0]  # and inside the evaluation's mouth crop, give or take a pixel
         assert u.min() >= x0 - 1 and u.max() <= x1 + 1 and v.min() >= y0 - 1 and v.max() <= y1 + 1
+
+
+def test_eye_boxes_hold_the_pixels_of_the_trainers_eye_squares(scene: Path) -> None:
+    """The evaluation's eye boxes are the pixels whose centre lies within ``EYE_CROP / 2`` of an
+    eye's projection in both axes (the squares stage 1 draws its eye rays from), checked pixel by
+    pixel; an error of 10 levels inside them alone gives the eyes' PSNR exactly."""
+    ds = load_dataset(scene)
+    meta = ds.meta
+    cols, rows = np.meshgrid(np.arange(meta.width) + 0.5, np.arange(meta.height) + 0.5)
+    frames = [0, 7, len(ds.frames) - 1]
+    boxes = np.stack([eye_boxes_at(meta, ds.head_pose(f)) for f in frames])
+    for f, frame_boxes in zip(frames, boxes):
+        uv, depth = meta.eyes_in_image(ds.head_pose(f))
+        assert abs(float(uv[0, 0]) - float(uv[1, 0])) > 2  # two eyes apart: a swapped axis would show
+        for k, (x0, y0, x1, y1) in enumerate(frame_boxes):
+            half = 0.5 * EYE_CROP * meta.intrinsics[0] / float(depth[k])
+            want = (np.abs(cols - float(uv[k, 0])) <= half) & (np.abs(rows - float(uv[k, 1])) <= half)
+            got = np.zeros_like(want)
+            got[y0:y1, x0:x1] = True
+            assert want.sum() >= 4 and np.array_equal(got, want)
+    target = ds.frames[frames]
+    pred = target.copy()
+    inside = np.zeros(target.shape[:3], dtype=bool)
+    for j, frame_boxes in enumerate(boxes):
+        for x0, y0, x1, y1 in frame_boxes:
+            inside[j, y0:y1, x0:x1] = True
+    pred[inside] = np.where(target[inside] < 128, target[inside] + 10, target[inside] - 10)
+    pred[~inside] = 255 - target[~inside]  # off the eyes nothing counts
+    assert eye_psnr(pred, target, boxes) == pytest.approx(-10 * math.log10((10 / 255) ** 2))
+    assert eye_psnr(pred, target, np.zeros_like(boxes)) is None
 
 
 # ---- render

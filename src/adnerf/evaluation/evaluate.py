@@ -3,6 +3,10 @@
 * PSNR and SSIM (kornia) on full frames, on the head (PSNR over the true frame's head-label
   pixels, SSIM on the head label's box) and on a square crop around the mouth (the canonical mouth
   point of the dataset projected with each frame's pose; side ``mouth_crop`` scene units).
+* PSNR over the eyes (``psnr_eyes``; datasets with eye points): the pixels of two squares of side
+  ``EYE_CROP`` scene units around the canonical eye points projected with each frame's pose, the
+  squares stage 1 draws its eye rays from. Gaze and brows are not conditioned, so the eyes are
+  where a head's error gathers per pixel; this puts it beside the mouth's and the head's.
 * With ``landmarks``: LMD, the inner-lip opening's correlation between render and truth and the
   audio-visual offset (:mod:`adnerf.evaluation.landmark_metrics`), from the dlib landmarks of both.
 * With an :class:`~adnerf.evaluation.lpips.LPIPS` model: LPIPS on full frames.
@@ -29,6 +33,7 @@ from kornia.metrics import ssim
 from ..model.render_clip import RenderedClip, frame_signals, render_frames
 from ..metrics import psnr
 from ..formats.dataset import (
+    EYE_CROP,
     LABEL_HEAD,
     MOUTH_CROP,
     DatasetError,
@@ -44,7 +49,7 @@ if TYPE_CHECKING:
     from .lpips import LPIPS
     from .syncnet import SyncNet
 
-__all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at", "syncnet_evaluation"]
+__all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "eye_boxes_at", "eye_psnr", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at", "syncnet_evaluation"]
 
 
 
@@ -68,6 +73,39 @@ def mouth_boxes_at(meta: SceneMeta, pose: HeadPose, crop: float = MOUTH_CROP) ->
     x0 = np.clip(np.round(uv[:, 0] - side / 2).astype(int), 0, meta.width - side)
     y0 = np.clip(np.round(uv[:, 1] - side / 2).astype(int), 0, meta.height - side)
     return np.stack([x0, y0, x0 + side, y0 + side], axis=1)
+
+
+def eye_boxes_at(meta: SceneMeta, pose: HeadPose, crop: float = EYE_CROP) -> np.ndarray:
+    """Square pixel boxes ``(2, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive, clipped to the
+    image, possibly empty) around both eyes under one head pose ``pose``: side ``crop`` scene
+    units at each eye's depth, as the trainer's eye rays (:meth:`SceneMeta.eyes_in_image`).
+
+    Raises:
+        ValueError: The dataset has no eye points.
+    """
+    uv_t, depth = meta.eyes_in_image(pose)
+    uv, depth = uv_t.numpy(), depth.numpy()
+    half = 0.5 * crop * meta.intrinsics[0] / depth  # (2,)
+    # Pixel j's centre is j + 0.5: the pixels whose centre lies within the square.
+    lo = np.ceil(uv - half[:, None] - 0.5).astype(int)
+    hi = np.floor(uv + half[:, None] - 0.5).astype(int) + 1
+    lo = np.clip(lo, 0, [meta.width, meta.height])
+    hi = np.clip(hi, lo, [meta.width, meta.height])
+    return np.concatenate([lo, hi], axis=1)
+
+
+def eye_psnr(pred: np.ndarray, target: np.ndarray, boxes: np.ndarray) -> float | None:
+    """PSNR over the pixels of each frame's eye boxes (their union), the mean over the frames
+    where they hold a pixel (``None`` when none does); frames ``(n, H, W, 3)`` uint8, boxes
+    ``(n, 2, 4)`` (:func:`eye_boxes_at`)."""
+    values = []
+    for p, t, frame_boxes in zip(pred, target, boxes):
+        inside = np.zeros(p.shape[:2], dtype=bool)
+        for x0, y0, x1, y1 in frame_boxes:
+            inside[y0:y1, x0:x1] = True
+        if inside.any():
+            values.append(psnr(p[inside], t[inside]))
+    return float(np.mean(values)) if values else None
 
 
 def mouth_darkness(crop: np.ndarray, light: float = 0.5, dark: float = 0.1) -> float:
@@ -190,6 +228,9 @@ def evaluate_clip(ds: TalkingHeadDataset, frames: list[int], clip: RenderedClip,
         "render_fps": len(frames) / max(clip.seconds, 1e-9),
     }
     out["psnr_head"], out["ssim_head"] = head_metrics(clip.frames, gt, ds.parsing[frames])
+    if ds.meta.eyes is not None:
+        eyes = np.stack([eye_boxes_at(ds.meta, ds.head_pose(frame)) for frame in frames])
+        out["psnr_eyes"] = eye_psnr(clip.frames, gt, eyes)
     true = true_faces(ds, frames) if landmarks or syncnet is not None else None  # found once for both
     if landmarks:
         out.update(landmark_evaluation(ds, frames, clip.frames, true))
