@@ -105,6 +105,7 @@ def test_training_lowers_the_loss_and_renders_mp4_with_audio(tiny: Path, tiny_ru
     metrics, clip = evaluate_run(load_run(tiny_run), load_dataset(tiny), "test")
     assert {"psnr", "ssim", "psnr_mouth", "ssim_mouth", "mouth_open_corr"} <= set(metrics)
     assert 0 < metrics["psnr"] < 100 and clip.frames.shape[0] == len(load_dataset(tiny).meta.test)
+    assert metrics["psnr_eyes"] is not None and 0 < metrics["psnr_eyes"] <= 100  # the scene has eye points
 
 
 def test_kill_and_resume_gives_the_same_steps(tiny: Path, tmp_path: Path) -> None:

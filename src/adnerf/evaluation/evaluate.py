@@ -5,8 +5,8 @@
   point of the dataset projected with each frame's pose; side ``mouth_crop`` scene units).
 * PSNR over the eyes (``psnr_eyes``; datasets with eye points): the pixels of two squares of side
   ``EYE_CROP`` scene units around the canonical eye points projected with each frame's pose, the
-  squares stage 1 draws its eye rays from. Gaze and brows are not conditioned, so the eyes are
-  where a head's error gathers per pixel; this puts it beside the mouth's and the head's.
+  squares stage 1 draws its eye rays from. The head reads the eyes' openness but not the gaze or
+  the brows, so the eyes are a region to watch beside the mouth.
 * With ``landmarks``: LMD, the inner-lip opening's correlation between render and truth and the
   audio-visual offset (:mod:`adnerf.evaluation.landmark_metrics`), from the dlib landmarks of both.
 * With an :class:`~adnerf.evaluation.lpips.LPIPS` model: LPIPS on full frames.
