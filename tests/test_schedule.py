@@ -54,7 +54,7 @@ def test_frames_per_step_splits_the_rays_over_frames_each_under_its_own_speech(t
     def spy(self: RadianceLayer, rays, cond, **kw):  # noqa: ANN001, ANN003, ANN202
         if self.training:  # not stage 2's renders of the frozen head
             n = rays.origins.shape[0]
-            t = cond.pose.t.expand(n, 3).numpy()
+            t = cond.pose.t.detach().expand(n, 3).numpy()  # a learning pose has gradients
             poses = np.argmin(np.linalg.norm(ds.poses[None, :, :3, 3] - t[:, None], axis=2), axis=1)
             seen[self.name].append((cond.audio.expand(n, -1)[:, 0].long().tolist(), poses.tolist()))
             # Each ray's pixel (the camera's rays differ in direction only).

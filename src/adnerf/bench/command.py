@@ -127,7 +127,7 @@ def _fmt(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.2f}"
 
 
-REAL_KEYS = ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "psnr_eyes", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "lmd_mouth_shape_px", "lmd_mouth_still_px", "mouth_open_corr", "av_offset_frames", "mouth_open_slope", "mouth_open_std_ratio", "lpips", "lse_d", "lse_c", "lse_d_true", "lse_c_true", "train_seconds")
+REAL_KEYS = ("poses", "psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "ssim_mouth", "psnr_eyes", "lmd_mouth_px", "lmd_mouth", "lmd_all_px", "lmd_all", "lmd_mouth_shape_px", "lmd_mouth_still_px", "mouth_open_corr", "av_offset_frames", "mouth_open_slope", "mouth_open_std_ratio", "lpips", "lse_d", "lse_c", "lse_d_true", "lse_c_true", "train_seconds")
 
 
 def _real_table(row: dict) -> str:

@@ -9,7 +9,8 @@ Steps, each timed (the times go into the result):
 3. **train**: both stages within ``minutes`` of training time: the iteration counts are fitted to
    the budget from the measured speed of a short probe (55% of the budget for the head, 45% for
    the torso, the demo's proportions).
-4. **evaluate**: the held-out tail rendered with its own audio and poses, and measured
+4. **evaluate**: the held-out tail rendered with its own audio and its poses fitted to its frames
+   (:func:`~adnerf.evaluation.fitted_poses.judged_poses`; the fit's seconds are the step's), and measured
    (:func:`adnerf.evaluation.evaluate.evaluate_run` with landmarks: PSNR / SSIM on the full frame, the head
    label and the mouth crop; LMD; mouth-opening correlation and audio-visual offset; LPIPS where
    weights are on this machine).

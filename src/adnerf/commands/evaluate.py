@@ -6,6 +6,7 @@ import argparse
 import json
 
 from ..evaluation.evaluate import evaluate_run
+from ..evaluation.fitted_poses import POSE_CHOICES
 from ..evaluation.lpips import lpips_if_available
 from ..evaluation.pose_sweep import SWEEP_YAWS, pose_sweep, spread, sweep_sheet
 from ..evaluation.syncnet import load_syncnet
@@ -21,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run", help="run folder")
     p.add_argument("dataset", help="dataset folder")
     p.add_argument("--split", choices=("train", "test"), default="test")
+    p.add_argument("--poses", choices=POSE_CHOICES, default="fitted", help="the head poses the frames are rendered under: fitted (default: the tracked poses aligned to each frame's head outside the mouth box, as training aligns its own frames) or tracked (the preprocessing's poses as they are)")
     add_device(p)
     p.add_argument("--no-landmarks", action="store_true", help="skip the landmark metrics (LMD, lip-sync correlation and offset; dlib on every frame twice)")
     add_metric_weights(p)
@@ -39,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from exc
     loaded = load_run(args.run, device)
     ds = load_dataset(args.dataset)
-    metrics, _ = evaluate_run(loaded, ds, args.split, landmarks=not args.no_landmarks, lpips=model, syncnet=sync)
+    metrics, _ = evaluate_run(loaded, ds, args.split, landmarks=not args.no_landmarks, lpips=model, syncnet=sync, poses=args.poses, progress=True)
     metrics["lpips"] = metrics.get("lpips", "no weights")
     if args.sweep:
         frames = spread(getattr(ds.meta, args.split), args.sweep)

@@ -32,16 +32,10 @@ from kornia.metrics import ssim
 
 from ..model.render_clip import RenderedClip, frame_signals, render_frames
 from ..metrics import psnr
-from ..formats.dataset import (
-    EYE_CROP,
-    LABEL_HEAD,
-    MOUTH_CROP,
-    DatasetError,
-    SceneMeta,
-    TalkingHeadDataset,
-)
+from ..formats.dataset import LABEL_HEAD, DatasetError, TalkingHeadDataset
 from ..model.run_folder import Run
-from ..pose import HeadPose
+from .boxes import eye_boxes_at, mouth_boxes, mouth_boxes_at  # re-exported: the crops the metrics read
+from .fitted_poses import judged_poses
 from .landmark_metrics import pearson
 
 if TYPE_CHECKING:
@@ -51,47 +45,6 @@ if TYPE_CHECKING:
 
 __all__ = ["mouth_darkness", "evaluate_clip", "evaluate_run", "eye_boxes_at", "eye_psnr", "head_metrics", "image_metrics", "landmark_evaluation", "mouth_boxes", "mouth_boxes_at", "syncnet_evaluation"]
 
-
-
-def mouth_boxes(ds: TalkingHeadDataset, frames: list[int], crop: float = MOUTH_CROP) -> np.ndarray:
-    """Square pixel boxes ``(n, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive) around the mouth of
-    the dataset's frames ``frames`` (:func:`mouth_boxes_at` of their poses)."""
-    return mouth_boxes_at(ds.meta, ds.head_pose(frames), crop)
-
-
-def mouth_boxes_at(meta: SceneMeta, pose: HeadPose, crop: float = MOUTH_CROP) -> np.ndarray:
-    """Square pixel boxes ``(n, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive) around the mouth
-    under head poses ``pose`` (batch ``(n,)``).
-
-    The side is ``crop`` scene units at the mouth's depth, the same for every frame (its mean),
-    and boxes are shifted to lie inside the image.
-    """
-    uv_t, depth = meta.mouth_in_image(pose)
-    uv = uv_t.numpy()
-    side = int(round(crop * meta.intrinsics[0] / float(depth.mean())))
-    side = max(8, min(side, meta.width, meta.height))
-    x0 = np.clip(np.round(uv[:, 0] - side / 2).astype(int), 0, meta.width - side)
-    y0 = np.clip(np.round(uv[:, 1] - side / 2).astype(int), 0, meta.height - side)
-    return np.stack([x0, y0, x0 + side, y0 + side], axis=1)
-
-
-def eye_boxes_at(meta: SceneMeta, pose: HeadPose, crop: float = EYE_CROP) -> np.ndarray:
-    """Square pixel boxes ``(2, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive, clipped to the
-    image, possibly empty) around both eyes under one head pose ``pose``: side ``crop`` scene
-    units at each eye's depth, as the trainer's eye rays (:meth:`SceneMeta.eyes_in_image`).
-
-    Raises:
-        ValueError: The dataset has no eye points.
-    """
-    uv_t, depth = meta.eyes_in_image(pose)
-    uv, depth = uv_t.numpy(), depth.numpy()
-    half = 0.5 * crop * meta.intrinsics[0] / depth  # (2,)
-    # Pixel j's centre is j + 0.5: the pixels whose centre lies within the square.
-    lo = np.ceil(uv - half[:, None] - 0.5).astype(int)
-    hi = np.floor(uv + half[:, None] - 0.5).astype(int) + 1
-    lo = np.clip(lo, 0, [meta.width, meta.height])
-    hi = np.clip(hi, lo, [meta.width, meta.height])
-    return np.concatenate([lo, hi], axis=1)
 
 
 def eye_psnr(pred: np.ndarray, target: np.ndarray, boxes: np.ndarray) -> float | None:
@@ -273,11 +226,15 @@ def evaluate_run(
     syncnet: "SyncNet | None" = None,
     backgrounds: Sequence[np.ndarray] = (),
     keep: Sequence[str] = (),
+    poses: str = "fitted",
+    progress: bool = False,
 ) -> tuple[dict, RenderedClip]:
-    """Render a split with its own poses and audio windows and measure it (see the module docs;
-    ``landmarks``, ``lpips`` and ``syncnet`` as in :func:`evaluate_clip`; ``backgrounds``: the
+    """Render a split with its own head poses and audio windows and measure it (see the module
+    docs; ``landmarks``, ``lpips`` and ``syncnet`` as in :func:`evaluate_clip`; ``backgrounds``: the
     frames are also composited over these, and ``keep``: these layers are kept, as
-    :func:`~adnerf.model.render_clip.render_frames` does).
+    :func:`~adnerf.model.render_clip.render_frames` does; ``poses``: the tracked poses or those
+    fitted to the frames, :func:`~adnerf.evaluation.fitted_poses.judged_poses`, named in the
+    metrics' ``poses``; ``progress``: the pose fit's progress bar).
 
     Raises:
         DatasetError: ``ds`` has another camera, frame rate or feature kind than the run's data.
@@ -292,7 +249,8 @@ def evaluate_run(
     eye = ds.eye[frames] if ds.eye is not None and run.model.reads_eye else None  # the dataset's own blinks
     # The frames' own signals, as their own poses: the torso's motion measured in them.
     signals = frame_signals(run, ds, frames)
-    clip = render_frames(run, ds.features[frames], ds.poses[frames], plate, eye=eye, backgrounds=backgrounds, keep=keep, signals=signals)
+    judged = judged_poses(run, ds, frames, poses, progress=progress)
+    clip = render_frames(run, ds.features[frames], judged, plate, eye=eye, backgrounds=backgrounds, keep=keep, signals=signals)
     metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips, syncnet=syncnet)
-    metrics["split"] = split
+    metrics["split"], metrics["poses"] = split, poses
     return metrics, clip

@@ -111,19 +111,25 @@ def frame_signals(run: Run, ds: "TalkingHeadDataset | DatasetTracks", frames: Se
 def dataset_track(run: Run, folder: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """A dataset's pose track ``(M, 4, 4)`` and the run's frame signals on its frames
     (:func:`frame_signals`; ``{}`` for a run that reads none, whose render needs only the poses):
-    what a render over that track plays (``adnerf render``, a stream), frame by frame.
+    what a render over that track plays (``adnerf render``, a stream), frame by frame. On the
+    run's own dataset the poses are those training aligned (:meth:`Run.dataset_poses`).
 
     Raises:
         RenderError: Poses that are not rigid motions, or a dataset whose tracks do not read.
     """
     poses_file = DatasetFolder(Path(folder)).poses
     if not run.model.config.frame_signals:
-        return checked_poses(np.load(poses_file), str(poses_file)), {}
-    try:
-        tracks = read_tracks(folder)
-    except DatasetError as exc:
-        raise RenderError(str(exc)) from exc
-    return checked_poses(tracks.poses, str(poses_file)), frame_signals(run, tracks, np.arange(len(tracks.poses)))
+        poses, signals = np.load(poses_file), {}
+    else:
+        try:
+            tracks = read_tracks(folder)
+        except DatasetError as exc:
+            raise RenderError(str(exc)) from exc
+        poses, signals = tracks.poses, frame_signals(run, tracks, np.arange(len(tracks.poses)))
+    poses = checked_poses(poses, str(poses_file))
+    if run.pose_corrections is not None and len(poses) == len(run.pose_corrections) and Path(folder).resolve() == Path(run.dataset).resolve():
+        poses = run.dataset_poses(poses, np.arange(len(poses)))
+    return poses, signals
 
 
 def _checked_signals(run: Run, signals: Mapping[str, np.ndarray] | None, n: int) -> dict[str, np.ndarray]:

@@ -13,6 +13,7 @@ import shutil
 import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -22,6 +23,7 @@ from ..lock import lock_owner
 from ..formats.dataset import DatasetError, DatasetFolder, SceneMeta, TalkingHeadDataset, read_meta
 from ..formats.run_folder import RUN_FORMAT, RUN_VERSION, RunError, RunFolder
 from .pose_range import PoseRange
+from .pose_refine import corrected_matrices
 from .talking_head import ModelConfig, TalkingHead, migrate_state_dict
 from .train_config import TrainConfig
 
@@ -74,6 +76,9 @@ class Run:
         elapsed: Training seconds by stage name (``{"head": s, "torso": s}``), from the checkpoint.
         pose_range: The head poses the training frames covered (:mod:`adnerf.model.pose_range`);
             ``None`` for a run written before the range was stored whose dataset is gone.
+        pose_corrections: The head-pose correction training learnt for each frame of its dataset
+            ``(n_frames, 6)`` float64 (:mod:`adnerf.model.pose_refine`; zero for the frames it
+            did not learn from), ``None`` for a run that kept the tracked poses.
     """
 
     root: Path
@@ -84,6 +89,15 @@ class Run:
     meta: dict
     elapsed: dict = field(default_factory=dict)
     pose_range: PoseRange | None = None
+    pose_corrections: np.ndarray | None = None
+
+    def dataset_poses(self, poses: np.ndarray, frames: Sequence[int] | np.ndarray) -> np.ndarray:
+        """The poses ``(N, 4, 4)`` the run gives frames ``frames`` of its own dataset, whose
+        tracked poses are ``poses``: moved by the corrections training learnt for them (none for
+        a run without; frames it did not learn from keep theirs)."""
+        if self.pose_corrections is None:
+            return np.asarray(poses, dtype=np.float64)
+        return corrected_matrices(poses, self.pose_corrections[np.asarray(frames, dtype=np.int64)])
 
     @property
     def head_step(self) -> int:
@@ -121,7 +135,8 @@ def stored_config(root: str | Path) -> TrainConfig:
 CHECKPOINT_KEYS = ("model", "generator", "stages", "elapsed")
 """What a checkpoint holds: the model's weights, the random generator's state, each stage's
 finished iterations and optimizer state by stage name (``{"head": {"step": n, "optimizer":
-state}, ...}``) and the training seconds by stage name (and ``mouth_probe`` with the mouth target)."""
+state}, ...}``) and the training seconds by stage name (and ``mouth_probe`` with the mouth target,
+``pose_corrections`` with learnt poses)."""
 
 OLD_CHECKPOINT_KEYS = ("model", "opt_head", "opt_torso", "generator", "head_step", "torso_step", "elapsed")
 """What a checkpoint held before the stages were named in it (:func:`migrate_checkpoint`)."""
@@ -179,7 +194,9 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     owner = lock_owner(root)
     if owner is not None:  # read beside a training: its last complete checkpoint (written atomically)
         warnings.warn(f"{root} is being trained (process {owner.get('pid')} on {owner.get('host')}); using its last checkpoint, head step {steps.get('head', 0)}/{tcfg.head_iters}, torso step {steps.get('torso', 0)}/{tcfg.torso_iters}", stacklevel=2)
-    return Run(root, Path(doc["dataset"]), model, tcfg, steps, doc["meta"], ckpt["elapsed"], stored_pose_range(doc))
+    fixes = ckpt.get("pose_corrections")
+    corrections = None if fixes is None else fixes["delta"].detach().cpu().numpy().astype(np.float64)
+    return Run(root, Path(doc["dataset"]), model, tcfg, steps, doc["meta"], ckpt["elapsed"], stored_pose_range(doc), corrections)
 
 
 def taught_pose_range(poses: np.ndarray, meta: SceneMeta) -> PoseRange:

@@ -15,6 +15,11 @@ landmarks, plus ``lip_weight`` times the error of a linear read-out of the audio
 the lip landmarks' opening and width (:mod:`adnerf.model.mouth_target`), so that the audio code
 carries how open the mouth is and not only what the few mouth rays of a step teach it.
 
+Stage 1 also aligns the tracked head poses to the head it learns: from ``pose_start`` of the
+stage on, each drawn frame's pose correction (:mod:`adnerf.model.pose_refine`) follows the same
+loss with its own optimizer (``pose_lr``), and every later use of a training frame's pose (stage 2,
+the run's renders of its dataset) takes the corrected one.
+
 Stage 2 (``torso``) freezes the head and the audio encoders and trains the torso fields on the full
 frames, composited with the stage-1 head in the model's order: the head in front (the default,
 :attr:`~adnerf.model.talking_head.ModelConfig.head_in_front`), or, in AD-NeRF's order, the head
@@ -71,6 +76,7 @@ from .blinks import BLINKING, blinks_in
 from .conditions import SIGNALS, FrameCondition
 from .distributed import Ranks, init_ranks
 from .masks import BitRows
+from .pose_refine import PoseCorrections, batch_loss
 from .mouth_target import MouthProbe, mouth_targets, opening_signal
 from .run_folder import (
     RESUMABLE,
@@ -125,26 +131,24 @@ Part = tuple[RenderOutput, torch.Tensor, torch.Tensor, "torch.Tensor | None"]
 None)``; the mask is the opacity's target on the ``held`` rays (``None``: all of them)."""
 
 
-def _optimise(parts: list[Part], mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks(), extra: "tuple[torch.Tensor, float, torch.optim.Optimizer] | None" = None) -> tuple[float, float]:
-    """One step on the MSE of the coarse and fine colours plus ``mask_weight`` times the MSE of
-    their opacities against the parsing mask (on the rays it holds; the others count 0), over the
-    rays of every part together (each part's mean weighted by its share of the rays), plus
-    ``weight`` times the loss of ``extra = (loss, weight, its own optimizer)`` (the mouth target,
-    whose read-out has its own optimizer); returns ``(loss, fine colour MSE)``, averaged over the
-    processes (whose gradients are averaged before the step)."""
+def _optimise(
+    parts: list[Part], mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks(), extra: "tuple[torch.Tensor, float, torch.optim.Optimizer] | None" = None,
+    also: Sequence[torch.optim.Optimizer] = (),
+) -> tuple[float, float]:  # fmt: skip
+    """One step on the loss of every part (:func:`~adnerf.model.pose_refine.batch_loss`: the MSE of
+    the coarse and fine colours plus ``mask_weight`` times the MSE of their opacities against the
+    parsing mask, on the rays it holds), over the rays of every part together (each part's mean
+    weighted by its share of the rays), plus ``weight`` times the loss of ``extra = (loss, weight,
+    its own optimizer)`` (the mouth target, whose read-out has its own optimizer); the optimizers
+    ``also`` (the pose corrections') step too. Returns ``(loss, fine colour MSE)``, averaged over
+    the processes (whose gradients are averaged before the step)."""
     total = sum(len(target) for _, target, _, _ in parts)
     loss = fine_mse = 0.0
     for out, target, mask, held in parts:
         share = len(target) / total  # 1.0 for one part: the products and sums below are then exact
-        part_fine = F.mse_loss(out.final.rgb.float(), target)
-        part = F.mse_loss(out.coarse.rgb.float(), target) + part_fine
-        if mask_weight > 0:
-            m = mask.float()
-            for composite in (out.coarse, out.final):
-                error = (composite.opacity.float() - m).square()
-                part = part + mask_weight * (error.mean() if held is None else (error * held).mean())
+        part, part_fine = batch_loss(out, target, mask, mask_weight, held)
         loss, fine_mse = loss + share * part, fine_mse + share * part_fine
-    optimizers = [optimizer] if extra is None else [optimizer, extra[2]]
+    optimizers = [optimizer, *also] if extra is None else [optimizer, extra[2], *also]
     if extra is not None:
         loss = loss + extra[1] * extra[0]
     for opt in optimizers:
@@ -414,6 +418,13 @@ class Trainer:
             raise RunError(f"the run's head reads the mouth, but the mouth target is not used on {ds.root} ({plan.doc['why']})")
         elif self.progress and "signal" in plan.doc:
             print(f"adnerf: {plan.doc['why']}", file=sys.stderr)
+        # Each training frame's head-pose correction (pose_lr > 0), learnt in stage 1 from
+        # pose_start on (:meth:`pose_of`); Adam moves only the corrections of frames drawn.
+        self.pose_fix: PoseCorrections | None = None
+        self.poses_learning = False
+        if tcfg.pose_lr > 0:
+            self.pose_fix = PoseCorrections(ds.meta.n_frames).to(device)
+            self.opt_pose = torch.optim.Adam(self.pose_fix.parameters(), lr=tcfg.pose_lr)
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.steps = {name: 0 for name in self.stages}  # finished iterations, by stage
         self.elapsed = {name: 0.0 for name in self.stages}  # seconds spent in steps, by stage
@@ -504,6 +515,8 @@ class Trainer:
         }
         if self.mouth_probe is not None:
             state["mouth_probe"] = {"model": self.mouth_probe.state_dict(), "opt": self.opt_probe.state_dict()}
+        if self.pose_fix is not None:
+            state["pose_corrections"] = {"delta": self.pose_fix.delta.detach().clone(), "opt": self.opt_pose.state_dict()}
         save_atomic(state, self.files.checkpoint)
 
     def load(self, ckpt: dict) -> None:
@@ -519,6 +532,10 @@ class Trainer:
         if self.mouth_probe is not None and "mouth_probe" in ckpt:
             self.mouth_probe.load_state_dict(ckpt["mouth_probe"]["model"])
             self.opt_probe.load_state_dict(ckpt["mouth_probe"]["opt"])
+        if self.pose_fix is not None and "pose_corrections" in ckpt:
+            with torch.no_grad():
+                self.pose_fix.delta.copy_(ckpt["pose_corrections"]["delta"])
+            self.opt_pose.load_state_dict(ckpt["pose_corrections"]["opt"])
         log = self.files.log
         if log.exists() and self.ranks.main:
             done = self.steps
@@ -575,12 +592,24 @@ class Trainer:
         layer's occupancy grid is updated under the first frame's condition when due."""
         frames = [self.pick_frame() for _ in range(self.tcfg.frames)]
         n = self.tcfg.rays // self.tcfg.frames
-        poses = [self.ds.head_pose(frame, device=self.device) for frame in frames]
+        poses = [self.pose_of(frame) for frame in frames]
         pixels = [rays_of(frame, pose, n) for frame, pose in zip(frames, poses)]
         codes = codes_of(frames)
         groups = [(frame, pix, self.condition(frame, code, pose)) for frame, pix, code, pose in zip(frames, pixels, codes, poses)]
         self.maybe_update_occupancy(layer, step, iters, groups[0][2])
         return groups
+
+    def pose_of(self, frame: int) -> HeadPose:
+        """Frame ``frame``'s head pose: the tracked one moved by its learnt correction (with
+        gradients while the corrections learn, :attr:`poses_learning`), or the tracked one
+        (``pose_lr`` 0)."""
+        pose = self.ds.head_pose(frame, device=self.device)
+        if self.pose_fix is None:
+            return pose
+        if self.poses_learning:
+            return self.pose_fix(frame, pose)
+        with torch.no_grad():
+            return self.pose_fix(frame, pose)
 
     def eye_pixels(self, pose) -> torch.Tensor:  # noqa: ANN001
         """Flat indices of the pixels in squares of side ``EYE_CROP`` units around both eyes (none
@@ -588,7 +617,7 @@ class Trainer:
         never blinks: then the eyes teach the condition nothing)."""
         if self.eye is None or self.ds.meta.eyes is None or not self.blinking.numel():
             return self.pixel_index[:0]
-        uv, depth = self.ds.meta.eyes_in_image(pose)
+        uv, depth = (x.detach() for x in self.ds.meta.eyes_in_image(pose))  # a learning pose has gradients
         cols, rows = self.pixel_centres
         inside = torch.zeros_like(self.pixel_index, dtype=torch.bool)
         for k in range(2):
@@ -607,7 +636,7 @@ class Trainer:
 
     def mouth_pixels(self, pose) -> torch.Tensor:
         """Flat indices of the pixels in the square of side ``MOUTH_CROP`` units around the mouth."""
-        uv, depth = self.ds.meta.mouth_in_image(pose)
+        uv, depth = (x.detach() for x in self.ds.meta.mouth_in_image(pose))  # a learning pose has gradients
         half = 0.5 * MOUTH_CROP * self.ds.meta.intrinsics[0] / float(depth)
         cols, rows = self.pixel_centres
         inside = ((cols - uv[0]).abs() <= half) & ((rows - uv[1]).abs() <= half)
@@ -652,7 +681,8 @@ class Trainer:
         if self.model.layers[layer].occupancy is None or step < self.tcfg.occupancy_start * iters:
             return
         if step % self.tcfg.occupancy_every == 0:
-            self.model.layers[layer].update_occupancy(FrameCondition(cond.audio.detach(), cond.pose, cond.extra), generator=self.generator)
+            pose = HeadPose(cond.pose.R.detach(), cond.pose.t.detach())
+            self.model.layers[layer].update_occupancy(FrameCondition(cond.audio.detach(), pose, cond.extra), generator=self.generator)
 
     # ---- stages
     def _loop(self, stage: Stage, step_fn: Callable[[int], tuple[float, float]], max_steps: int | None) -> None:
@@ -733,7 +763,7 @@ class Trainer:
         if not self.blinking.numel() or self.ds.meta.eyes is None or self.tcfg.eye_rays <= 0:
             return None
         frame = self.pick_frame(blinks=True)
-        pose = self.ds.head_pose(frame, device=self.device)
+        pose = self.pose_of(frame)
         eyes = self.eye_pixels(pose)
         if not eyes.numel():
             return None
@@ -838,14 +868,20 @@ class Trainer:
             sched.set(step)
             if stage.trains_audio:
                 self.model.set_audio_smoothing(step >= tcfg.att_start * stage.iters)
+            # The head's stage also aligns the training frames' poses to it, from pose_start on.
+            self.poses_learning = self.pose_fix is not None and stage.layer == "head" and step >= tcfg.pose_start * stage.iters
             groups = self.step_frames(stage.layer, step, stage.iters, rays_of, codes_of)
             eye_batch = self.eye_batch() if teaches_eye else None  # heads that blink: rays at the eyes of another frame
             if eye_batch is not None:
                 groups.append(eye_batch)
             part = part_of(self.batch_of(groups))
-            return _optimise([part], tcfg.mask_weight, opt, self.ranks, self.mouth_loss() if stage.trains_audio else None)
+            also = [self.opt_pose] if self.poses_learning else []
+            return _optimise([part], tcfg.mask_weight, opt, self.ranks, self.mouth_loss() if stage.trains_audio else None, also)
 
-        self._loop(stage, step_fn, max_steps)
+        try:
+            self._loop(stage, step_fn, max_steps)
+        finally:
+            self.poses_learning = False
 
     def fit(self, stages: Sequence[Stage] | None = None, max_steps: int | None = None) -> None:
         """Run stages of this trainer in order (default: all of them), ``max_steps`` iterations

@@ -81,6 +81,12 @@ class TrainConfig:
             follows it (:attr:`ModelConfig.torso_motion <adnerf.model.talking_head.ModelConfig.torso_motion>`;
             ``docs/decisions.md``, *The torso follows its own motion*); 0: the torso's place is
             what its field makes of the head pose and audio code (AD-NeRF).
+        pose_lr: Learning rate (Adam) of each training frame's head-pose correction
+            (:mod:`adnerf.model.pose_refine`), learnt in stage 1 with the head and used from then
+            on (the torso stage, renders of the training frames); 0: the tracked poses as they are
+            (``docs/decisions.md``, *The head poses are fitted to the pixels*).
+        pose_start: Fraction of stage 1 after which the pose corrections learn (the head needs a
+            shape to be aligned to first).
     """
 
     head_iters: int = 3600
@@ -111,6 +117,8 @@ class TrainConfig:
     head_samples: int = 0
     torso_samples: int = 0
     head_grid: int = 0
+    pose_lr: float = 3e-4
+    pose_start: float = 0.3
 
     def scaled(self, k: int) -> "TrainConfig":
         """The same schedule in ``k`` times fewer, ``k`` times larger steps: ``k`` times the rays,
@@ -160,8 +168,10 @@ class TrainConfig:
             raise ValueError("rays, checkpoint_every, log_every and occupancy_every must be >= 1")
         if not (self.lr > 0 and self.lr_audio > 0 and 0 < self.lr_final <= 1):
             raise ValueError("learning rates must be positive and lr_final in (0, 1]")
-        if not (0 <= self.att_start <= 1 and 0 <= self.occupancy_start <= 1):
-            raise ValueError("att_start and occupancy_start must lie in [0, 1]")
+        if not (0 <= self.att_start <= 1 and 0 <= self.occupancy_start <= 1 and 0 <= self.pose_start <= 1):
+            raise ValueError("att_start, occupancy_start and pose_start must lie in [0, 1]")
+        if self.pose_lr < 0:
+            raise ValueError(f"pose_lr must be >= 0 (0: the tracked poses); got {self.pose_lr}")
         if self.frames < 1 or self.rays % self.frames:
             raise ValueError(f"frames must be >= 1 and divide rays ({self.rays}); got {self.frames}")
         if self.amp not in AMP_MODES:
@@ -212,8 +222,9 @@ class TrainConfig:
 
 
 PRESETS = ("fast", "paper")
-LATER_KEYS: dict[str, object] = {"lip_weight": 0.0, "mouth_input": 0, "torso_motion": 0}
+LATER_KEYS: dict[str, object] = {"lip_weight": 0.0, "mouth_input": 0, "torso_motion": 0, "pose_lr": 0.0}
 """Keys added to the schedule after runs were written without them, with the value those runs
-trained with (they trained the audio code from the photometric loss alone)."""
+trained with (the audio code from the photometric loss alone, the torso from the pose and the
+code, the tracked poses as they were)."""
 _FIELD_TYPES: dict[str, type] = {f.name: {"int": int, "float": float, "str": str}[f.type] for f in fields(TrainConfig)}  # type: ignore[index]
 _TYPE_WORDS = {int: "an integer", float: "a number", str: "a string"}

@@ -1,0 +1,78 @@
+"""The head poses a run is judged under: the tracked ones, or the ones fitted to the frames.
+
+The protocol judges a render of a held-out frame against that frame, so the frame's head pose is
+an input measured from the footage, as its audio is. The tracker's poses carry an error of about a
+degree that drifts with time (``docs/decisions.md``, *The head poses are fitted to the pixels*);
+``"fitted"`` ends the tracking as training ends it for the training frames: each frame's pose is
+the tracked one moved by a correction that aligns the trained head to the frame's rigid part
+(:func:`~adnerf.model.pose_refine.fit_corrections`: the mouth box, which the mouth metrics read, is
+left out). Training frames of the run's own dataset take the correction training learnt for them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..formats.dataset import MOUTH_CROP, TalkingHeadDataset
+from ..model.pose_refine import corrected_matrices, fit_corrections
+from ..model.render_clip import frame_setup, frame_signals
+from ..model.run_folder import Run
+from ..pose import HeadPose
+from .boxes import mouth_boxes_at
+
+__all__ = ["POSE_CHOICES", "judged_poses"]
+
+POSE_CHOICES = ("fitted", "tracked")
+"""What :func:`judged_poses` gives: poses fitted to the frames, or the tracked ones as they are."""
+
+
+def _same_dataset(run: Run, ds: TalkingHeadDataset) -> bool:
+    try:
+        return Path(ds.root).resolve() == Path(run.dataset).resolve()
+    except OSError:
+        return False
+
+
+def judged_poses(run: Run, ds: TalkingHeadDataset, frames: Sequence[int], poses: str = "fitted", *, progress: bool = False) -> np.ndarray:
+    """The head poses ``(len(frames), 4, 4)`` under which ``run`` renders frames ``frames`` of
+    ``ds`` to be judged against them.
+
+    Args:
+        run: A loaded run.
+        ds: The dataset (the run's own, or another of its camera).
+        frames: Frame indices, in the order the codes of their audio are made (a split's).
+        poses: ``"tracked"``: the dataset's poses; ``"fitted"``: each moved by a correction, the one
+            training learnt for it (training frames of the run's dataset), else one fitted now.
+        progress: Show the fit's progress bar.
+
+    Raises:
+        ValueError: ``poses`` is not one of :data:`POSE_CHOICES`.
+    """
+    if poses not in POSE_CHOICES:
+        raise ValueError(f"poses must be one of {POSE_CHOICES}; got {poses!r}")
+    frames = np.asarray(frames, dtype=np.int64)
+    tracked = np.asarray(ds.poses[frames], dtype=np.float64)
+    if poses == "tracked" or not len(frames):
+        return tracked
+    delta = np.zeros((len(frames), 6), dtype=np.float64)
+    if run.pose_corrections is not None and _same_dataset(run, ds) and len(run.pose_corrections) == ds.meta.n_frames:
+        delta = run.pose_corrections[frames].copy()
+    todo = np.flatnonzero(~delta.any(axis=1))  # a frame training drew has a non-zero correction
+    if len(todo):
+        model = run.model
+        camera, plate = frame_setup(run, ds.background.astype(np.float32) / 255.0)
+        dev = plate.device
+        with torch.no_grad():  # the codes the render makes: over the frames in their order
+            codes = model.frame_codes(torch.as_tensor(ds.features[frames], device=dev))[torch.as_tensor(todo, device=dev)]
+        picked = frames[todo]
+        boxes = mouth_boxes_at(ds.meta, HeadPose.from_matrix(torch.as_tensor(tracked[todo])), MOUTH_CROP)
+        eye = ds.eye[picked] if ds.eye is not None and model.reads_eye else None
+        delta[todo] = fit_corrections(
+            model, camera, plate, ds.frames[picked], ds.parsing[picked], tracked[todo], codes, eye=eye, signals=frame_signals(run, ds, picked),
+            exclude=boxes, amp=run.train_config.amp, seed=run.train_config.seed, progress=progress,
+        )  # fmt: skip
+    return corrected_matrices(tracked, delta)

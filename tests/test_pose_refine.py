@@ -1,0 +1,168 @@
+"""Per-frame head-pose corrections: the correction's algebra, what training learns and keeps, the
+fit of frames training did not see, and the poses a run is judged and rendered under."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from adnerf.evaluation.evaluate import evaluate_run
+from adnerf.evaluation.fitted_poses import judged_poses
+from adnerf.formats.dataset import load_dataset
+from adnerf.model.pose_refine import PoseCorrections, corrected, corrected_matrices, fit_corrections
+from adnerf.model.render_clip import dataset_track, frame_setup, frame_signals, render_frames
+from adnerf.model.run_folder import load_run
+from adnerf.model.train import TrainConfig, train
+from adnerf.model.train_config import LATER_KEYS
+from adnerf.pose import HeadPose, euler_rotation
+from adnerf.synth import SynthConfig, synthesize
+
+SCENE = SynthConfig(seconds=1.6, size=32, voice="formant", seed=3)
+LEARN = TrainConfig(head_iters=40, torso_iters=4, rays=128, log_every=10, checkpoint_every=20, pose_start=0.5)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return synthesize(tmp_path_factory.mktemp("poses") / "data", SCENE)
+
+
+@pytest.fixture(scope="module")
+def run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return train(scene, tmp_path_factory.mktemp("poses_run") / "run", config=LEARN, progress=False)
+
+
+def _pose(seed: int) -> HeadPose:
+    g = torch.Generator().manual_seed(seed)
+    angles = (torch.rand(3, generator=g, dtype=torch.float64) - 0.5) * 0.6
+    R = euler_rotation(angles[0], angles[1], angles[2], like=angles)
+    return HeadPose(R, torch.tensor([0.1, -0.2, 4.0], dtype=torch.float64))
+
+
+def test_a_correction_turns_and_shifts_the_head_in_its_own_frame() -> None:
+    pose = _pose(1)
+    same = corrected(pose, torch.zeros(6, dtype=torch.float64))
+    assert torch.equal(same.R, pose.R) and torch.equal(same.t, pose.t)  # zero is the tracked pose, exactly
+    theta = 0.03
+    turned = corrected(pose, torch.tensor([0.0, theta, 0.0, 0.01, -0.02, 0.005], dtype=torch.float64))
+    c, s = np.cos(theta), np.sin(theta)
+    about_y = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
+    # R exp(omega): the turn about the head's own y axis, applied before the pose (a swapped
+    # product, exp(omega) R, turns about the camera's axis instead and fails here).
+    torch.testing.assert_close(turned.R, pose.R @ about_y, rtol=0, atol=1e-15)
+    # t + R tau: the shift along the head's own axes; the canonical origin lands there.
+    torch.testing.assert_close(turned.t, pose.t + pose.R @ torch.tensor([0.01, -0.02, 0.005], dtype=torch.float64), rtol=0, atol=1e-15)
+    torch.testing.assert_close(turned.from_canonical(torch.zeros(3, dtype=torch.float64)), turned.t)
+    # The numpy form agrees, frame by frame.
+    m = corrected_matrices(np.stack([pose.matrix().numpy()] * 2), np.array([[0, theta, 0, 0.01, -0.02, 0.005], [0] * 6]))
+    np.testing.assert_allclose(m[0], turned.matrix().numpy(), atol=1e-15)
+    np.testing.assert_array_equal(m[1], pose.matrix().numpy())
+
+
+def test_the_correction_is_differentiable_at_and_away_from_zero() -> None:
+    pose = _pose(2)
+
+    def moved(delta: torch.Tensor) -> torch.Tensor:
+        p = corrected(pose, delta)
+        return p.from_canonical(torch.tensor([0.3, -0.1, 0.2], dtype=torch.float64))
+
+    for start in (torch.zeros(6), torch.tensor([0.2, -0.1, 0.05, 0.01, 0.0, -0.02])):
+        assert torch.autograd.gradcheck(moved, (start.double().requires_grad_(),))
+    with pytest.raises(ValueError, match="corrections must be"):
+        corrected(pose, torch.zeros(3, dtype=torch.float64))
+
+
+def test_frames_never_drawn_keep_a_zero_correction() -> None:
+    fixes = PoseCorrections(5)
+    opt = torch.optim.Adam(fixes.parameters(), lr=1e-2)
+    for frame in (1, 3, 1):
+        opt.zero_grad()
+        fixes(frame, _pose(frame)).t.sum().backward()
+        opt.step()
+    delta = fixes.delta.detach()
+    assert delta[[1, 3]].abs().sum(1).gt(0).all() and torch.equal(delta[[0, 2, 4]], torch.zeros(3, 6, dtype=torch.float64))
+
+
+def test_training_learns_the_drawn_frames_corrections_and_keeps_them(scene: Path, run: Path) -> None:
+    ds = load_dataset(scene)
+    loaded = load_run(run)
+    delta = loaded.pose_corrections
+    assert delta is not None and delta.shape == (ds.meta.n_frames, 6)
+    learnt = np.flatnonzero(delta.any(axis=1))
+    assert len(learnt) and set(learnt) <= set(ds.meta.train)  # only training frames move; held-out ones stay
+    assert np.abs(delta).max() < 0.1  # a fraction of a degree a step: corrections, not new poses
+    # The run's renders of its own dataset's track play the learnt poses; another dataset's are its own.
+    track, _ = dataset_track(loaded, scene)
+    np.testing.assert_allclose(track, corrected_matrices(ds.poses, delta), atol=1e-12)
+    assert not np.allclose(track[learnt], ds.poses[learnt])
+    # A run written before the corrections existed kept the tracked poses.
+    assert LATER_KEYS["pose_lr"] == 0.0 and TrainConfig.from_stored({}).pose_lr == 0.0
+
+
+def test_a_run_without_pose_learning_keeps_the_tracked_poses(scene: Path, tmp_path: Path) -> None:
+    plain = train(scene, tmp_path / "plain", config=TrainConfig(head_iters=4, torso_iters=0, rays=64, pose_lr=0.0), progress=False)
+    loaded = load_run(plain)
+    assert loaded.pose_corrections is None and "pose_corrections" not in torch.load(plain / "checkpoint.pt", weights_only=False)
+    np.testing.assert_array_equal(dataset_track(loaded, scene)[0], load_dataset(scene).poses)
+    with pytest.raises(ValueError, match="pose_lr"):
+        TrainConfig(pose_lr=-1.0).validate()
+
+
+def test_resuming_restores_the_corrections_and_their_optimizer(scene: Path, tmp_path: Path) -> None:
+    cfg = TrainConfig(head_iters=8, torso_iters=0, rays=64, log_every=1, checkpoint_every=4, pose_start=0.0)
+    straight = train(scene, tmp_path / "straight", config=cfg, progress=False)
+    cut = tmp_path / "cut"
+    train(scene, cut, config=cfg, progress=False, max_steps=4)
+    train(scene, cut, progress=False, resume=True)
+    a, b = (torch.load(r / "checkpoint.pt", weights_only=False)["pose_corrections"] for r in (straight, cut))
+    assert torch.equal(a["delta"], b["delta"]) and a["delta"].abs().sum() > 0
+    assert all(torch.equal(x, y) for x, y in zip(a["opt"]["state"][0].values(), b["opt"]["state"][0].values()))
+
+
+def test_the_fit_finds_a_known_pose_error(scene: Path, run: Path) -> None:
+    """Frames rendered by the run itself under known poses, handed to the fit under poses moved
+    by a known error: the fitted correction undoes most of it (a sign error in the correction or
+    in its gradient doubles the error instead)."""
+    ds = load_dataset(scene)
+    loaded = load_run(run)
+    frames = [0, ds.meta.n_frames // 2, ds.meta.n_frames - 1]  # far apart: each frame its own pose
+    truth_poses = ds.poses[frames]
+    clip = render_frames(loaded, ds.features[frames], truth_poses, ds.background.astype(np.float32) / 255.0)
+    labels = np.where(clip.head_opacity > 0.5, 1, 0).astype(np.uint8)  # the render's own head
+    error = np.array([[0.0, 0.0, 0.0, 0.04, -0.03, 0.0], [0.0, 0.0, 0.12, 0.03, 0.03, 0.0], [0.05, 0.0, 0.0, -0.04, 0.0, 0.0]])
+    tracked = corrected_matrices(truth_poses, error)
+    camera, plate = frame_setup(loaded, ds.background.astype(np.float32) / 255.0)
+    with torch.no_grad():
+        codes = loaded.model.frame_codes(torch.as_tensor(ds.features[frames]))
+    delta = fit_corrections(loaded.model, camera, plate, clip.frames, labels, tracked, codes, signals=frame_signals(loaded, ds, frames), steps=150, rays=128, lr=5e-3)
+    fitted = corrected_matrices(tracked, delta)
+    # Where the head's points land in the image, tracked and fitted, against the truth.
+    points = torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.2, 0.3], [-0.3, -0.3, 0.2]], dtype=torch.float64)
+    K = ds.meta.camera()
+
+    def landed(m: np.ndarray) -> np.ndarray:
+        return K.project(HeadPose.from_matrix(torch.as_tensor(m))[:, None].from_canonical(points)).numpy()
+
+    before = np.linalg.norm(landed(tracked) - landed(truth_poses), axis=-1).mean(1)
+    after = np.linalg.norm(landed(fitted) - landed(truth_poses), axis=-1).mean(1)
+    assert (after < 0.5 * before).all(), (before, after)
+
+
+def test_evaluation_judges_fitted_or_tracked_poses(scene: Path, run: Path) -> None:
+    ds = load_dataset(scene)
+    loaded = load_run(run)
+    test = list(ds.meta.test)
+    np.testing.assert_array_equal(judged_poses(loaded, ds, test, "tracked"), ds.poses[test])
+    # Training frames training drew take the corrections it learnt, without a fit.
+    learnt = [f for f in ds.meta.train if loaded.pose_corrections[f].any()]
+    np.testing.assert_allclose(judged_poses(loaded, ds, learnt, "fitted"), corrected_matrices(ds.poses[learnt], loaded.pose_corrections[learnt]), atol=1e-12)
+    fitted = judged_poses(loaded, ds, test, "fitted")
+    assert not np.allclose(fitted, ds.poses[test])  # held-out frames are fitted now
+    metrics, _ = evaluate_run(loaded, ds, "test", poses="tracked")
+    assert metrics["poses"] == "tracked"
+    with pytest.raises(ValueError, match="poses must be"):
+        judged_poses(loaded, ds, test, "truth")
+    assert json.loads(json.dumps(metrics))["split"] == "test"
