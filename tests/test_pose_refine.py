@@ -13,7 +13,7 @@ import torch
 from adnerf.evaluation.evaluate import evaluate_run
 from adnerf.evaluation.fitted_poses import judged_poses
 from adnerf.formats.dataset import load_dataset
-from adnerf.model.pose_refine import PoseCorrections, corrected, corrected_matrices, fit_corrections
+from adnerf.model.pose_refine import PoseCorrections, _inside, corrected, corrected_matrices, fit_corrections
 from adnerf.model.render_clip import dataset_track, frame_setup, frame_signals, render_frames
 from adnerf.model.run_folder import load_run
 from adnerf.model.train import TrainConfig, train
@@ -86,6 +86,15 @@ def test_frames_never_drawn_keep_a_zero_correction() -> None:
     assert delta[[1, 3]].abs().sum(1).gt(0).all() and torch.equal(delta[[0, 2, 4]], torch.zeros(3, 6, dtype=torch.float64))
 
 
+def test_the_inside_of_the_head_label_keeps_its_distance_from_the_outline() -> None:
+    is_head = torch.zeros(12, 14, dtype=torch.bool)
+    is_head[2:10, 3:12] = True
+    expected = torch.zeros_like(is_head)
+    expected[4:8, 5:10] = True  # two pixels in from every side (an off-by-one margin fails)
+    assert torch.equal(_inside(is_head, 2), expected)
+    assert not _inside(is_head, 4).any()
+
+
 def test_training_learns_the_drawn_frames_corrections_and_keeps_them(scene: Path, run: Path) -> None:
     ds = load_dataset(scene)
     loaded = load_run(run)
@@ -137,7 +146,7 @@ def test_the_fit_finds_a_known_pose_error(scene: Path, run: Path) -> None:
     camera, plate = frame_setup(loaded, ds.background.astype(np.float32) / 255.0)
     with torch.no_grad():
         codes = loaded.model.frame_codes(torch.as_tensor(ds.features[frames]))
-    delta = fit_corrections(loaded.model, camera, plate, clip.frames, labels, tracked, codes, signals=frame_signals(loaded, ds, frames), steps=150, rays=128, lr=5e-3)
+    delta = fit_corrections(loaded.model, camera, plate, clip.frames, labels, tracked, codes, signals=frame_signals(loaded, ds, frames), steps=150, rays=128, lr=5e-3, rim=0.0, mask_weight=0.1)  # a 32 px head has no inside to speak of: its box and outline
     fitted = corrected_matrices(tracked, delta)
     # Where the head's points land in the image, tracked and fitted, against the truth.
     points = torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.2, 0.3], [-0.3, -0.3, 0.2]], dtype=torch.float64)

@@ -151,6 +151,16 @@ def real_minute() -> list[str]:
               f"{num(r['lmd_mouth_px'])} / {num(r['lmd_all_px'])}", num(r["mouth_open_corr"]), num(r["mouth_open_slope"])] for r in m256["torso_motion"]["rows"]],
         ),
         "",
+        f"Head poses aligned to the pixels ({m256['pose_fit']['what']}; `{m256['pose_fit']['command']}`):",
+        "",
+        table(
+            ["clip", "training poses", "judged under", "PSNR frame / head / mouth / eyes (dB)", "SSIM", "LMD mouth / all (px)", "correlation", "slope", "std ratio"],
+            [[r["clip"], r["training_poses"], r["judged_poses"], " / ".join(num(r.get(k)) for k in ("psnr", "psnr_head", "psnr_mouth", "psnr_eyes")), num(r["ssim"], 3),
+              f"{num(r['lmd_mouth_px'])} / {num(r['lmd_all_px'])}", num(r["mouth_open_corr"]), num(r["mouth_open_slope"]), num(r["mouth_open_std_ratio"])] for r in m256["pose_fit"]["rows"]],
+        ),
+        "",
+        f"![held-out frames of the 50 s clip under tracked and fitted poses]({'bench/' + m256['pose_fit']['sheet'].split(':')[0]}) ({m256['pose_fit']['sheet'].split(': ', 1)[1]})",
+        "",
         "Preprocessing, seconds per step:",
         "",
         table(
