@@ -776,8 +776,10 @@ class Trainer:
 
     def head_rays(self, frame: int, pose: HeadPose, n: int) -> torch.Tensor:
         """Stage-1 pixels of ``frame``: ``n`` of those whose ray crosses the head box, the
-        ``mouth_rays`` share of them around the mouth."""
-        return self.pick_among(self.head_box_pixels(frame, pose), self.mouth_pixels(pose), self.tcfg.mouth_rays, n)
+        ``mouth_rays`` share of them around the mouth. The box's pixels, kept from the frame's
+        first draw, are those of its tracked pose: under its learnt correction they would depend
+        on when the frame was first drawn, and a resumed run would draw other rays."""
+        return self.pick_among(self.head_box_pixels(frame, self.ds.head_pose(frame, device=self.device)), self.mouth_pixels(pose), self.tcfg.mouth_rays, n)
 
     def frozen_head(self, pix: torch.Tensor, cond: FrameCondition) -> Layer:
         """The stage-1 head along pixels ``pix`` ``(R,)`` under ``cond`` (one frame's, or each
