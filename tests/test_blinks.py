@@ -175,7 +175,7 @@ def test_training_gives_each_frame_its_own_eye_openness(scene: Path, tmp_path: P
     def spy(self: RadianceLayer, rays, cond, **kw):  # noqa: ANN001, ANN003, ANN202
         if self.name == "head" and self.training:
             n = rays.origins.shape[0]
-            eyes, t, speech = cond.extra["eye"].expand(n, 1)[:, 0], cond.pose.t.expand(n, 3), cond.audio.expand(n, -1)[:, 0]
+            eyes, t, speech = cond.extra["eye"].expand(n, 1)[:, 0], cond.pose.t.detach().expand(n, 3), cond.audio.expand(n, -1)[:, 0]
             seen.append((eyes.numpy().copy(), t.numpy().copy(), speech.long().numpy().copy()))
         return real(self, rays, cond, **kw)
 

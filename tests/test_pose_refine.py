@@ -166,7 +166,9 @@ def test_the_fit_finds_a_known_pose_error(scene: Path, run: Path) -> None:
 
 
 def test_evaluation_judges_fitted_or_tracked_poses(scene: Path, run: Path) -> None:
-    ds = load_dataset(scene)
+    exact = load_dataset(scene)  # a synthetic scene's poses are exact: nothing to fit
+    assert np.array_equal(judged_poses(load_run(run), exact, list(exact.meta.test)), exact.poses[exact.meta.test])
+    ds = load_dataset(scene, truth=False)  # as a filmed clip's: poses to fit
     loaded = load_run(run)
     test = list(ds.meta.test)
     np.testing.assert_array_equal(judged_poses(loaded, ds, test, "tracked"), ds.poses[test])
@@ -176,7 +178,7 @@ def test_evaluation_judges_fitted_or_tracked_poses(scene: Path, run: Path) -> No
     fitted = judged_poses(loaded, ds, test, "fitted")
     assert not np.allclose(fitted, ds.poses[test])  # held-out frames are fitted now
     metrics, _ = evaluate_run(loaded, ds, "test", poses="tracked")
-    assert metrics["poses"] == "tracked"
+    assert metrics["poses"] == "tracked" and evaluate_run(loaded, load_dataset(scene), "test")[0]["poses"] == "exact"
     with pytest.raises(ValueError, match="poses must be"):
         judged_poses(loaded, ds, test, "truth")
     assert json.loads(json.dumps(metrics))["split"] == "test"

@@ -234,7 +234,7 @@ def evaluate_run(
     frames are also composited over these, and ``keep``: these layers are kept, as
     :func:`~adnerf.model.render_clip.render_frames` does; ``poses``: the tracked poses or those
     fitted to the frames, :func:`~adnerf.evaluation.fitted_poses.judged_poses`, named in the
-    metrics' ``poses``; ``progress``: the pose fit's progress bar).
+    metrics' ``poses``: ``"exact"`` for a synthetic scene's; ``progress``: the pose fit's progress bar).
 
     Raises:
         DatasetError: ``ds`` has another camera, frame rate or feature kind than the run's data.
@@ -252,5 +252,5 @@ def evaluate_run(
     judged = judged_poses(run, ds, frames, poses, progress=progress)
     clip = render_frames(run, ds.features[frames], judged, plate, eye=eye, backgrounds=backgrounds, keep=keep, signals=signals)
     metrics = evaluate_clip(ds, frames, clip, landmarks=landmarks, lpips=lpips, syncnet=syncnet)
-    metrics["split"], metrics["poses"] = split, poses
+    metrics["split"], metrics["poses"] = split, "exact" if ds.truth is not None else poses
     return metrics, clip

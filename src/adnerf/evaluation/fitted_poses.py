@@ -2,11 +2,11 @@
 
 The protocol judges a render of a held-out frame against that frame, so the frame's head pose is
 an input measured from the footage, as its audio is. The tracker's poses carry an error of about a
-degree that drifts with time (``docs/decisions.md``, *The head poses are fitted to the pixels*);
+degree that drifts slowly (``docs/decisions.md``, *The head poses are fitted to the pixels*);
 ``"fitted"`` ends the tracking as training ends it for the training frames: each frame's pose is
 the tracked one moved by a correction that aligns the trained head to the frame's rigid part
-(:func:`~adnerf.model.pose_refine.fit_corrections`: the mouth box, which the mouth metrics read, is
-left out). Training frames of the run's own dataset take the correction training learnt for them.
+(:func:`~adnerf.model.pose_refine.fit_corrections`: the inside of the head label, without its
+outline or the mouth box, which the mouth metrics read). Training frames of the run's own dataset take the correction training learnt for them.
 """
 
 from __future__ import annotations
@@ -46,7 +46,9 @@ def judged_poses(run: Run, ds: TalkingHeadDataset, frames: Sequence[int], poses:
         ds: The dataset (the run's own, or another of its camera).
         frames: Frame indices, in the order the codes of their audio are made (a split's).
         poses: ``"tracked"``: the dataset's poses; ``"fitted"``: each moved by a correction, the one
-            training learnt for it (training frames of the run's dataset), else one fitted now.
+            training learnt for it (training frames of the run's dataset), else one fitted now. A
+            synthetic scene's poses (a dataset loaded with its ``truth``) are exact: there is
+            nothing to fit, and they are given as they are.
         progress: Show the fit's progress bar.
 
     Raises:
@@ -56,7 +58,7 @@ def judged_poses(run: Run, ds: TalkingHeadDataset, frames: Sequence[int], poses:
         raise ValueError(f"poses must be one of {POSE_CHOICES}; got {poses!r}")
     frames = np.asarray(frames, dtype=np.int64)
     tracked = np.asarray(ds.poses[frames], dtype=np.float64)
-    if poses == "tracked" or not len(frames):
+    if poses == "tracked" or not len(frames) or ds.truth is not None:
         return tracked
     delta = np.zeros((len(frames), 6), dtype=np.float64)
     if run.pose_corrections is not None and _same_dataset(run, ds) and len(run.pose_corrections) == ds.meta.n_frames:

@@ -11,8 +11,9 @@ canonical frame, moves the tracked pose ``(R, t)`` to
 (``exp``: the rotation of axis-angle ``omega``, radians; ``tau`` in scene units along the head's
 own axes; zero: the tracked pose, exactly). Training learns one per training frame with the
 field (:class:`PoseCorrections`); frames the field did not learn from (a held-out tail) get theirs
-from :func:`fit_corrections`, with the field frozen, on the rigid part of the head: the mouth box
-is left out, so the fit cannot explain a mouth by moving the head.
+from :func:`fit_corrections`, with the field frozen, on the rigid part of the head: the inside of
+its label, without the outline (hair and the jaw line move on their own) or the mouth box (the
+fit cannot explain a mouth by moving the head).
 """
 
 from __future__ import annotations
