@@ -217,7 +217,7 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     assert (Path(row["dataset"]) / "preprocess_report.json").stat().st_mtime_ns == stamp
     assert row["clothes"] == "grabcut" and "_noclothes" not in row["dataset"]
     # adnerf evaluate reports the same metrics for the run and its dataset.
-    assert main(["evaluate", row["run"], row["dataset"], "--json", "--poses", "tracked", "--lpips-backbone", str(backbone_path), "--lpips-linear", str(linear_path), "--syncnet", str(syncnet_path)]) == 0
+    assert main(["evaluate", row["run"], row["dataset"], "--json", "--lpips-backbone", str(backbone_path), "--lpips-linear", str(linear_path), "--syncnet", str(syncnet_path)]) == 0
     ev = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("psnr", "psnr_head", "ssim_head", "psnr_mouth", "lpips", "landmarks_found_true", "lse_d", "lse_c", "lse_d_true"):
         assert ev[key] == pytest.approx(row[key], abs=1e-6), key
