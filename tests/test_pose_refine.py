@@ -4,6 +4,7 @@ fit of frames training did not see, and the poses a run is judged and rendered u
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -95,7 +96,7 @@ def test_the_inside_of_the_head_label_keeps_its_distance_from_the_outline() -> N
     assert not _inside(is_head, 4).any()
 
 
-def test_training_learns_the_drawn_frames_corrections_and_keeps_them(scene: Path, run: Path) -> None:
+def test_training_learns_the_drawn_frames_corrections_and_keeps_them(scene: Path, run: Path, tmp_path: Path) -> None:
     ds = load_dataset(scene)
     loaded = load_run(run)
     delta = loaded.pose_corrections
@@ -107,6 +108,11 @@ def test_training_learns_the_drawn_frames_corrections_and_keeps_them(scene: Path
     track, _ = dataset_track(loaded, scene)
     np.testing.assert_allclose(track, corrected_matrices(ds.poses, delta), atol=1e-12)
     assert not np.allclose(track[learnt], ds.poses[learnt])
+    assert loaded.learnt_corrections(scene, ds.meta.n_frames) is delta
+    assert loaded.learnt_corrections(scene, ds.meta.n_frames + 1) is None  # not the dataset it learnt on
+    other = shutil.copytree(scene, tmp_path / "copy")  # the same frames in another folder: not the run's own
+    assert loaded.learnt_corrections(other, ds.meta.n_frames) is None
+    np.testing.assert_array_equal(dataset_track(loaded, other)[0], ds.poses)
     # A run written before the corrections existed kept the tracked poses.
     assert LATER_KEYS["pose_lr"] == 0.0 and TrainConfig.from_stored({}).pose_lr == 0.0
 

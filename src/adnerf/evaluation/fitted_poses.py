@@ -11,7 +11,6 @@ outline or the mouth box, which the mouth metrics read). Training frames of the 
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -28,13 +27,6 @@ __all__ = ["POSE_CHOICES", "judged_poses"]
 
 POSE_CHOICES = ("fitted", "tracked")
 """What :func:`judged_poses` gives: poses fitted to the frames, or the tracked ones as they are."""
-
-
-def _same_dataset(run: Run, ds: TalkingHeadDataset) -> bool:
-    try:
-        return Path(ds.root).resolve() == Path(run.dataset).resolve()
-    except OSError:
-        return False
 
 
 def judged_poses(run: Run, ds: TalkingHeadDataset, frames: Sequence[int], poses: str = "fitted", *, progress: bool = False) -> np.ndarray:
@@ -60,9 +52,8 @@ def judged_poses(run: Run, ds: TalkingHeadDataset, frames: Sequence[int], poses:
     tracked = np.asarray(ds.poses[frames], dtype=np.float64)
     if poses == "tracked" or not len(frames) or ds.truth is not None:
         return tracked
-    delta = np.zeros((len(frames), 6), dtype=np.float64)
-    if run.pose_corrections is not None and _same_dataset(run, ds) and len(run.pose_corrections) == ds.meta.n_frames:
-        delta = run.pose_corrections[frames].copy()
+    learnt = run.learnt_corrections(ds.root, ds.meta.n_frames)
+    delta = np.zeros((len(frames), 6), dtype=np.float64) if learnt is None else learnt[frames].copy()
     todo = np.flatnonzero(~delta.any(axis=1))  # a frame training drew has a non-zero correction
     if len(todo):
         model = run.model

@@ -127,7 +127,7 @@ def dataset_track(run: Run, folder: str | Path) -> tuple[np.ndarray, dict[str, n
             raise RenderError(str(exc)) from exc
         poses, signals = tracks.poses, frame_signals(run, tracks, np.arange(len(tracks.poses)))
     poses = checked_poses(poses, str(poses_file))
-    if run.pose_corrections is not None and len(poses) == len(run.pose_corrections) and Path(folder).resolve() == Path(run.dataset).resolve():
+    if run.learnt_corrections(folder, len(poses)) is not None:
         poses = run.dataset_poses(poses, np.arange(len(poses)))
     return poses, signals
 

@@ -91,6 +91,18 @@ class Run:
     pose_range: PoseRange | None = None
     pose_corrections: np.ndarray | None = None
 
+    def learnt_corrections(self, folder: str | Path, n_frames: int) -> np.ndarray | None:
+        """The head-pose corrections ``(n_frames, 6)`` training learnt
+        (:mod:`~adnerf.model.pose_refine`), when the dataset in ``folder``, of ``n_frames``
+        frames, is the run's own; ``None`` for another dataset or a run that learnt none."""
+        if self.pose_corrections is None or len(self.pose_corrections) != n_frames:
+            return None
+        try:
+            same = Path(folder).resolve() == Path(self.dataset).resolve()
+        except OSError:
+            return None
+        return self.pose_corrections if same else None
+
     def dataset_poses(self, poses: np.ndarray, frames: Sequence[int] | np.ndarray) -> np.ndarray:
         """The poses ``(N, 4, 4)`` the run gives frames ``frames`` of its own dataset, whose
         tracked poses are ``poses``: moved by the corrections training learnt for them (none for
