@@ -239,6 +239,7 @@ def model_config(
     torso_samples: int = 0,
     head_grid: int = 0,
     torso_motion: bool = False,
+    head_width: int = 0,
 ) -> ModelConfig:
     """The model for a dataset.
 
@@ -249,6 +250,7 @@ def model_config(
     ``signals``: further registered signals the head reads (:attr:`ModelConfig.head_signals`).
     ``head_samples``, ``torso_samples``: samples per ray of each pass of the layer (0: the preset's).
     ``head_grid``: the finest plane resolution of the head's fine field (``"fast"``; 0: 256).
+    ``head_width``: the width of the head's fine field's MLP (``"fast"``; 0: 64).
     ``torso_motion``: the torso layer follows the dataset's torso motion (:attr:`ModelConfig.torso_motion`).
     """
     config = replace(_preset_config(meta, preset, audio_dim, eye, mouth, signals), torso_motion=torso_motion)
@@ -258,6 +260,10 @@ def model_config(
         if head_grid < config.head_fine.grid_base_resolution:
             raise ValueError(f"head_grid must be at least the planes' base resolution {config.head_fine.grid_base_resolution}; got {head_grid}")
         config = replace(config, head_fine=FieldConfig.from_dict({**config.head_fine.to_dict(), "grid_max_resolution": head_grid}))
+    if head_width:
+        if preset != "fast":
+            raise ValueError(f"head_width sets the fast preset's head MLP; the {preset!r} preset's is AD-NeRF's 256")
+        config = replace(config, head_fine=FieldConfig.from_dict({**config.head_fine.to_dict(), "width": head_width}))
     if head_samples:
         config = replace(config, head_samples=(head_samples, head_samples))
     if torso_samples:

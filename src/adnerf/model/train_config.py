@@ -77,6 +77,7 @@ class TrainConfig:
         head_grid: Finest plane resolution of the head's fine tri-plane field (fast preset), in
             cells a side; 0: the preset's (256). Finer planes than a frame has pixels across
             cannot be taught cell by cell, and each one costs time in every step.
+        head_width: Width of the head's fine field's MLP (fast preset); 0: the preset's (64).
         torso_motion: 1: where the dataset has the torso's motion (``torso.npy``), the torso layer
             follows it (:attr:`ModelConfig.torso_motion <adnerf.model.talking_head.ModelConfig.torso_motion>`;
             ``docs/decisions.md``, *The torso follows its own motion*); 0: the torso's place is
@@ -117,6 +118,7 @@ class TrainConfig:
     head_samples: int = 0
     torso_samples: int = 0
     head_grid: int = 0
+    head_width: int = 0
     pose_lr: float = 3e-4
     pose_start: float = 0.3
 
@@ -195,6 +197,8 @@ class TrainConfig:
             raise ValueError(f"head_grid is 0 (the preset's) or at least the planes' base resolution, 16; got {self.head_grid}")
         if self.head_grid and self.preset != "fast":
             raise ValueError(f"head_grid sets the fast preset's tri-plane; the {self.preset!r} preset has none")
+        if self.head_width < 0 or (self.head_width and self.preset != "fast"):
+            raise ValueError(f"head_width is 0 (the preset's) or a width of the fast preset's head MLP; got {self.head_width} with preset {self.preset!r}")
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {PRESETS}; got {self.preset!r}")
 
