@@ -1,7 +1,8 @@
 """Shared fixtures of the geometry-correctness suite.
 
 Error tables that a check measures are added with the ``report`` fixture and printed at the end
-of the pytest run (``pytest_terminal_summary``), so every CI log carries them.
+of the pytest run (``pytest_terminal_summary``; under pytest-xdist each worker hands its lines to
+the main process), so every CI log carries them.
 """
 
 from __future__ import annotations
@@ -34,6 +35,19 @@ def tol(dtype: torch.dtype) -> dict[str, float]:
 def report() -> Callable[[str], None]:
     """Append a line to the error report printed after the run."""
     return _REPORT.append
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """A worker process of pytest-xdist hands its lines to the process that prints the summary."""
+    output = getattr(session.config, "workeroutput", None)
+    if output is not None:
+        output["geometry_report"] = list(_REPORT)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error) -> None:  # noqa: ANN001
+    """The summary's process collects the lines of each pytest-xdist worker as it finishes."""
+    _REPORT.extend(getattr(node, "workeroutput", {}).get("geometry_report", []))
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # noqa: ANN001
