@@ -254,16 +254,19 @@ def model_config(
     ``torso_motion``: the torso layer follows the dataset's torso motion (:attr:`ModelConfig.torso_motion`).
     """
     config = replace(_preset_config(meta, preset, audio_dim, eye, mouth, signals), torso_motion=torso_motion)
+    fine: dict[str, int] = {}  # what the schedule changes of the head's fine field
     if head_grid:
         if config.head_fine.encoding != "triplane":
             raise ValueError(f"head_grid sets a tri-plane's resolution; the {preset!r} preset's head has none")
         if head_grid < config.head_fine.grid_base_resolution:
             raise ValueError(f"head_grid must be at least the planes' base resolution {config.head_fine.grid_base_resolution}; got {head_grid}")
-        config = replace(config, head_fine=FieldConfig.from_dict({**config.head_fine.to_dict(), "grid_max_resolution": head_grid}))
+        fine["grid_max_resolution"] = head_grid
     if head_width:
         if preset != "fast":
             raise ValueError(f"head_width sets the fast preset's head MLP; the {preset!r} preset's is AD-NeRF's 256")
-        config = replace(config, head_fine=FieldConfig.from_dict({**config.head_fine.to_dict(), "width": head_width}))
+        fine["width"] = head_width
+    if fine:
+        config = replace(config, head_fine=FieldConfig.from_dict({**config.head_fine.to_dict(), **fine}))
     if head_samples:
         config = replace(config, head_samples=(head_samples, head_samples))
     if torso_samples:
