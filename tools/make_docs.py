@@ -110,6 +110,22 @@ def step_ms(r: dict) -> str:
 # ---- sections ---------------------------------------------------------------------------------
 
 
+def field_gain(g: dict) -> list[str]:
+    """The mouth's amplitude through the two stages (code read-out, field) and the variants tried."""
+    return [
+        f"Where the mouth's amplitude is lost ({g['what']}; `{g['command']}`):",
+        "",
+        table(
+            ["variant", "frames", "head stage (s)", "PSNR frame / head / mouth (dB)", "LMD mouth / all (px)", "correlation", "slope", "std ratio"],
+            [[r["variant"], r["frames"], num(r.get("head_stage_s"), 0), " / ".join(num(r.get(k)) for k in ("psnr", "psnr_head", "psnr_mouth")),
+              f"{num(r.get('lmd_mouth_px'))} / {num(r.get('lmd_all_px'))}", num(r["mouth_open_corr"]), num(r["mouth_open_slope"]), num(r["mouth_open_std_ratio"])] for r in g["rows"]],
+        ),
+        "",
+        g["note"],
+        "",
+    ]
+
+
 def real_minute() -> list[str]:
     m256, m512 = load("real_minute.json"), load("real_minute_512.json")
     default, before = default_256(m256), lip_weight_row(m256, 0.0)
@@ -161,6 +177,7 @@ def real_minute() -> list[str]:
         "",
         f"![held-out frames of the 50 s clip under tracked and fitted poses]({'bench/' + m256['pose_fit']['sheet'].split(':')[0]}) ({m256['pose_fit']['sheet'].split(': ', 1)[1]})",
         "",
+        *field_gain(m256["field_gain"]),
         "Preprocessing, seconds per step:",
         "",
         table(
