@@ -173,16 +173,18 @@ def test_one_part_of_several_frames_is_the_loss_of_a_part_per_frame() -> None:
         assert torch.allclose(g, h, atol=1e-6, rtol=1e-3)
 
 
-@pytest.mark.parametrize("config", ["paper", "fast"])
+@pytest.mark.parametrize("config", ["paper", "fast", "paper gated", "fast gated"])
 def test_a_field_folds_each_rays_condition_as_the_per_point_condition_reads(config: str) -> None:
     """``SampleRows`` (a row per ray, folded into the conditioned layers' biases, at the input and
-    at the skip) against the same condition copied to every point; values and gradients."""
+    at the skip; a gated field's projection taken per ray and gathered per point) against the same
+    condition copied to every point; values and gradients."""
     cond_dim = 7
-    cfg = paper_config(cond_dim) if config == "paper" else fast_config(cond_dim)
-    cfg = FieldConfig.from_dict({**cfg.to_dict(), "depth": 6, "width": 32, "density_activation": "softplus"})  # no dead densities
+    cfg = paper_config(cond_dim) if config.startswith("paper") else fast_config(cond_dim)
+    gate = 3 if config.endswith("gated") else 0
+    cfg = FieldConfig.from_dict({**cfg.to_dict(), "depth": 6, "width": 32, "density_activation": "softplus", "cond_gate": gate})  # no dead densities
     torch.manual_seed(3)
     field = RadianceField(cfg).double()
-    assert config == "fast" or cfg.skips == (4,)
+    assert config.startswith("fast") or cfg.skips == (4,)
     rows = torch.randn(5, cond_dim, dtype=torch.float64, requires_grad=True)
     ray = torch.tensor([[0, 0, 3], [4, 1, 1], [2, 2, 0], [3, 4, 4]])  # the points' rays, shape (4, 3)
     points = torch.rand(4, 3, 3, dtype=torch.float64) * 1.6 - 0.8

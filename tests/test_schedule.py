@@ -122,7 +122,7 @@ def test_each_frames_head_box_pixels_are_kept_from_its_first_draw(tmp_path: Path
     assert len(set(sets)) > 1  # the head moves: frames differ, so one frame's pixels kept for all would fail
 
 
-def test_sample_counts_head_grid_and_width_from_the_schedule_are_trained_stored_and_rendered(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_sample_counts_head_grid_width_and_gate_from_the_schedule_are_trained_stored_and_rendered(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from adnerf.model.run_folder import load_run
     from adnerf.renderer import VolumeRenderer
 
@@ -135,7 +135,7 @@ def test_sample_counts_head_grid_and_width_from_the_schedule_are_trained_stored_
         return real_init(self, bounds, n_coarse, n_fine, *args, **kw)
 
     monkeypatch.setattr(VolumeRenderer, "__init__", spy)
-    cfg = TrainConfig(head_iters=2, torso_iters=2, rays=32, log_every=1, head_samples=6, torso_samples=4, head_grid=32, head_width=48)
+    cfg = TrainConfig(head_iters=2, torso_iters=2, rays=32, log_every=1, head_samples=6, torso_samples=4, head_grid=32, head_width=48, head_gate=4)
     train(data, tmp_path / "run", config=cfg, progress=False)
     assert set(made) == {(6, 6), (4, 4)}  # each layer trained with its own count, coarse and fine
     run = load_run(tmp_path / "run")
@@ -144,8 +144,11 @@ def test_sample_counts_head_grid_and_width_from_the_schedule_are_trained_stored_
     assert [p.shape[-1] for p in run.model.layers["head"].fine.position_encoding.planes][-1] == 32
     widths = {name: (layer.coarse.config.width, layer.fine.config.width) for name, layer in run.model.layers.items()}
     assert widths == {"head": (32, 48), "torso": (32, 64)}  # only the head's fine MLP is wider
+    gates = {name: (layer.coarse.config.cond_gate, layer.fine.config.cond_gate) for name, layer in run.model.layers.items()}
+    assert gates == {"head": (4, 4), "torso": (0, 0)}  # both head fields gate the code; the torso does not
+    assert run.model.layers["head"].fine.gate is not None and run.model.layers["torso"].fine.gate is None
     default = model_config(load_dataset(data, truth=False).meta)
     assert (default.head_samples, default.torso_samples, default.head_fine.grid_max_resolution, default.head_fine.width) == ((16, 16), (16, 16), 256, 64)
-    for bad, message in (({"head_samples": 1}, "head_samples"), ({"head_grid": 8}, "head_grid"), ({"head_grid": 64, "preset": "paper"}, "head_grid"), ({"head_width": -1}, "head_width"), ({"head_width": 128, "preset": "paper"}, "head_width")):
+    for bad, message in (({"head_samples": 1}, "head_samples"), ({"head_grid": 8}, "head_grid"), ({"head_grid": 64, "preset": "paper"}, "head_grid"), ({"head_width": -1}, "head_width"), ({"head_width": 128, "preset": "paper"}, "head_width"), ({"head_gate": -1}, "head_gate")):
         with pytest.raises(ValueError, match=message):
             TrainConfig(**bad).validate()

@@ -2,7 +2,11 @@
 
 A :class:`RadianceField` is an encoding of positions (plug-in), an optional encoding of view
 directions, an MLP, and a conditioning vector (the audio code, and for the torso the head pose)
-concatenated to the encoded position at the input and at the skip layers, as in AD-NeRF.
+concatenated to the encoded position at the input and at the skip layers, as in AD-NeRF. With
+``cond_gate`` the field also reads a narrow projection of the condition that each point scales by
+a gate of its own position's features (``P c * sigmoid(G e(x) + g)``), so that a condition can act
+where the field learns it should (the audio code at the mouth) rather than only as the same shift
+of every point's first layer.
 
 The field knows no space and no pose: a :class:`~adnerf.model.layers.RadianceLayer` places it
 (the head layer in the head's canonical space, the torso layer in camera space) and builds its
@@ -75,6 +79,10 @@ class FieldConfig:
         grid_channels: Features per plane and level.
         grid_base_resolution: Coarsest tri-plane resolution.
         grid_max_resolution: Finest tri-plane resolution.
+        cond_gate: Width of the gated condition (0: none): the condition projected to this many
+            values once a ray (``P c``), scaled at each point by ``sigmoid(G e(x) + g)`` of the
+            point's encoded position ``e(x)``, and read by the first layer (and the skips) beside
+            the encoded position and the condition itself.
     """
 
     encoding: Literal["pe", "triplane"] = "pe"
@@ -93,6 +101,7 @@ class FieldConfig:
     grid_channels: int = 8
     grid_base_resolution: int = 16
     grid_max_resolution: int = 128
+    cond_gate: int = 0
 
     def to_dict(self) -> dict:
         """A JSON-serialisable dict (for checkpoints)."""
@@ -164,13 +173,20 @@ class RadianceField(nn.Module):
         super().__init__()
         if config.depth < 1 or config.width < 1:
             raise ValueError("field depth and width must be >= 1")
+        if config.cond_gate < 0 or (config.cond_gate and not config.cond_dim):
+            raise ValueError(f"cond_gate is the width of a gated condition (>= 0, and the field must have a condition); got {config.cond_gate} with cond_dim {config.cond_dim}")
         if any(not 0 < s < config.depth for s in config.skips):
             raise ValueError(f"skip layers must lie in 1..depth-1; got {config.skips} for depth {config.depth}")
         if config.density_activation not in ("relu", "softplus"):
             raise ValueError(f"unknown density activation {config.density_activation!r}")
         self.config = config
         self.position_encoding = _make_encoding(config)
-        in_dim = self.position_encoding.out_dim + config.cond_dim
+        in_dim = self.position_encoding.out_dim + config.cond_gate + config.cond_dim
+        self.gate_code: nn.Linear | None = None
+        self.gate: nn.Linear | None = None
+        if config.cond_gate:
+            self.gate_code = nn.Linear(config.cond_dim, config.cond_gate, bias=False)
+            self.gate = nn.Linear(self.position_encoding.out_dim, config.cond_gate)
         layers = []
         for i in range(config.depth):
             fan_in = in_dim if i == 0 else config.width + (in_dim if i in config.skips else 0)
@@ -217,7 +233,14 @@ class RadianceField(nn.Module):
                 shared = SampleRows(condition.rows.to(h_in), condition.ray)
             elif condition.dim() == 1:
                 shared = condition.to(h_in)
-            else:
+            if self.gate_code is not None and self.gate is not None:
+                # The projection once a ray (or frame), the gate at each point: [e(x), P c * gate(x)].
+                if isinstance(shared, SampleRows):
+                    code = self.gate_code(shared.rows).index_select(0, shared.ray.reshape(-1)).reshape(*batch, cfg.cond_gate)
+                else:
+                    code = self.gate_code(condition.to(h_in))
+                h_in = torch.cat([h_in, code * torch.sigmoid(self.gate(h_in))], dim=-1)
+            if shared is None:
                 h_in = torch.cat([h_in, condition.to(h_in).expand(*batch, cfg.cond_dim)], dim=-1)
         elif condition is not None:
             raise ValueError("this field takes no condition (cond_dim = 0)")

@@ -240,6 +240,7 @@ def model_config(
     head_grid: int = 0,
     torso_motion: bool = False,
     head_width: int = 0,
+    head_gate: int = 0,
 ) -> ModelConfig:
     """The model for a dataset.
 
@@ -251,6 +252,8 @@ def model_config(
     ``head_samples``, ``torso_samples``: samples per ray of each pass of the layer (0: the preset's).
     ``head_grid``: the finest plane resolution of the head's fine field (``"fast"``; 0: 256).
     ``head_width``: the width of the head's fine field's MLP (``"fast"``; 0: 64).
+    ``head_gate``: the width of both head fields' gated condition (:attr:`FieldConfig.cond_gate
+    <adnerf.fields.FieldConfig.cond_gate>`; 0: none).
     ``torso_motion``: the torso layer follows the dataset's torso motion (:attr:`ModelConfig.torso_motion`).
     """
     config = replace(_preset_config(meta, preset, audio_dim, eye, mouth, signals), torso_motion=torso_motion)
@@ -265,6 +268,9 @@ def model_config(
         if preset != "fast":
             raise ValueError(f"head_width sets the fast preset's head MLP; the {preset!r} preset's is AD-NeRF's 256")
         fine["width"] = head_width
+    if head_gate:
+        fine["cond_gate"] = head_gate
+        config = replace(config, head=replace(config.head, cond_gate=head_gate))
     if fine:
         config = replace(config, head_fine=FieldConfig.from_dict({**config.head_fine.to_dict(), **fine}))
     if head_samples:

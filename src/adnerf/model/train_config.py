@@ -78,6 +78,10 @@ class TrainConfig:
             cells a side; 0: the preset's (256). Finer planes than a frame has pixels across
             cannot be taught cell by cell, and each one costs time in every step.
         head_width: Width of the head's fine field's MLP (fast preset); 0: the preset's (64).
+        head_gate: Width of the head fields' gated condition (:attr:`FieldConfig.cond_gate
+            <adnerf.fields.FieldConfig.cond_gate>`): a projection of the audio code that each
+            point scales by a gate of its own position, so the code can act at the mouth alone;
+            0: the code shifts every point of the head's first layer alike (AD-NeRF).
         torso_motion: 1: where the dataset has the torso's motion (``torso.npy``), the torso layer
             follows it (:attr:`ModelConfig.torso_motion <adnerf.model.talking_head.ModelConfig.torso_motion>`;
             ``docs/decisions.md``, *The torso follows its own motion*); 0: the torso's place is
@@ -119,6 +123,7 @@ class TrainConfig:
     torso_samples: int = 0
     head_grid: int = 0
     head_width: int = 0
+    head_gate: int = 0
     pose_lr: float = 3e-4
     pose_start: float = 0.3
 
@@ -184,6 +189,8 @@ class TrainConfig:
             raise ValueError(f"lip_frames must be >= 1; got {self.lip_frames}")
         if self.mouth_input not in (0, 1):
             raise ValueError(f"mouth_input is 0 or 1; got {self.mouth_input}")
+        if self.head_gate < 0:
+            raise ValueError(f"head_gate is a width, >= 0 (0: no gated condition); got {self.head_gate}")
         if self.torso_motion not in (0, 1):
             raise ValueError(f"torso_motion is 0 or 1; got {self.torso_motion}")
         if not -1 <= self.lip_min_signal <= 1:
