@@ -110,15 +110,17 @@ def step_ms(r: dict) -> str:
 # ---- sections ---------------------------------------------------------------------------------
 
 
-def field_gain(g: dict) -> list[str]:
-    """The mouth's amplitude through the two stages (code read-out, field) and the variants tried."""
+def variant_rows(g: dict, title: str) -> list[str]:
+    """Variants measured on the held-out tail (and the stages' read-outs): a table of ``g["rows"]``,
+    with the clip and seed in front where the rows name them, then ``g["note"]``."""
+    lead = [k for k in ("clip", "seed") if any(k in r for r in g["rows"])]
     return [
-        f"Where the mouth's amplitude is lost ({g['what']}; `{g['command']}`):",
+        f"{title} ({g['what']}; `{g['command']}`):",
         "",
         table(
-            ["variant", "frames", "head stage (s)", "PSNR frame / head / mouth (dB)", "LMD mouth / all (px)", "correlation", "slope", "std ratio"],
-            [[r["variant"], r["frames"], num(r.get("head_stage_s"), 0), " / ".join(num(r.get(k)) for k in ("psnr", "psnr_head", "psnr_mouth")),
-              f"{num(r.get('lmd_mouth_px'))} / {num(r.get('lmd_all_px'))}", num(r["mouth_open_corr"]), num(r["mouth_open_slope"]), num(r["mouth_open_std_ratio"])] for r in g["rows"]],
+            [*lead, "variant", "frames", "head stage (s)", "PSNR frame / head / mouth (dB)", "LMD mouth / all (px)", "correlation", "slope", "std ratio"],
+            [[*(str(r.get(k, "")) for k in lead), r["variant"], r["frames"], num(r.get("head_stage_s"), 0), " / ".join(num(r.get(k)) for k in ("psnr", "psnr_head", "psnr_mouth")),
+              f"{num(r.get('lmd_mouth_px'))} / {num(r.get('lmd_all_px'))}", num(r["mouth_open_corr"]), num(r["mouth_open_slope"]), num(r.get("mouth_open_std_ratio"))] for r in g["rows"]],
         ),
         "",
         g["note"],
@@ -177,7 +179,8 @@ def real_minute() -> list[str]:
         "",
         f"![held-out frames of the 50 s clip under tracked and fitted poses]({'bench/' + m256['pose_fit']['sheet'].split(':')[0]}) ({m256['pose_fit']['sheet'].split(': ', 1)[1]})",
         "",
-        *field_gain(m256["field_gain"]),
+        *variant_rows(m256["field_gain"], "Where the mouth's amplitude is lost"),
+        *variant_rows(m256["head_gate"], "The audio code gated by position"),
         "Preprocessing, seconds per step:",
         "",
         table(
