@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -498,6 +500,28 @@ def test_median_plate_equals_the_masked_median(n: int) -> None:
     assert (~seen).any() and (count % 2 == 1).any() and (n < 3 or (count % 2 == 0)[seen].any())
     assert np.array_equal(plate[seen], np.round(ref[seen]).astype(np.uint8))
     assert not plate[~seen].any()
+
+
+def test_median_plate_reads_memory_mapped_frames_without_a_warning(tmp_path) -> None:  # noqa: ANN001
+    """The plate step reads the decoded frames memory-mapped read-only; torch warned ("The given
+    NumPy array is not writable ... undefined behavior") in every preprocessing run. A fresh
+    process (torch warns once a process) runs the plate on read-only maps with warnings as errors."""
+    frames = np.random.default_rng(0).integers(0, 256, (5, 8, 12, 3)).astype(np.uint8)
+    person = np.zeros((5, 8, 12), bool)
+    person[:2, 2:5, 3:7] = True
+    np.save(tmp_path / "frames.npy", frames)
+    np.save(tmp_path / "person.npy", person)
+    code = (
+        "import numpy as np, sys\n"
+        "from adnerf.preprocess.plate import median_plate\n"
+        "f = np.load(sys.argv[1], mmap_mode='r'); p = np.load(sys.argv[2], mmap_mode='r')\n"
+        "assert not f.flags.writeable\n"
+        "plate, count = median_plate(f, p, margin=0)\n"
+        "print(int(count.sum()))\n"
+    )
+    done = subprocess.run([sys.executable, "-W", "error", "-c", code, str(tmp_path / "frames.npy"), str(tmp_path / "person.npy")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert int(done.stdout) == 5 * 8 * 12 - int(person.sum())
 
 
 def test_frozen_grabcut_ignores_which_probable_class_a_pixel_starts_in() -> None:

@@ -8,6 +8,7 @@ inpainting (Telea's fast marching method), and their fraction is reported.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -67,8 +68,8 @@ def median_plate(frames: np.ndarray, person: np.ndarray, margin: int = 2, rows_p
         rows = slice(y0, min(h, y0 + rows_per_chunk))
         # Frames last, so each column's partition runs over contiguous memory (torch's permute
         # copies a strided block several times faster than numpy's).
-        block = torch.from_numpy(frames[:, rows]).permute(1, 2, 3, 0).to(torch.int16).contiguous().numpy()  # (r, W, 3, N)
-        hidden = torch.from_numpy(person[:, rows]).permute(1, 2, 0).contiguous().numpy()  # (r, W, N)
+        block = _tensor(frames[:, rows]).permute(1, 2, 3, 0).to(torch.int16).contiguous().numpy()  # (r, W, 3, N)
+        hidden = _tensor(person[:, rows]).permute(1, 2, 0).contiguous().numpy()  # (r, W, N)
         c = count[rows]
         below = (n - c) // 2
         fill = np.where(np.cumsum(hidden, axis=-1, dtype=np.int32) <= below[..., None], np.int16(-1), np.int16(256))
@@ -79,6 +80,15 @@ def median_plate(frames: np.ndarray, person: np.ndarray, margin: int = 2, rows_p
         seen = c > 0
         plate[rows][seen] = np.round(med[seen]).astype(np.uint8)
     return plate, count
+
+
+def _tensor(a: np.ndarray) -> torch.Tensor:
+    """``a`` as a tensor sharing its memory, read-only arrays (the frames memory-mapped from the
+    work folder) included: :func:`median_plate` only reads it (copies it, permuted), and torch
+    warns of undefined behaviour on any read-only array it wraps."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
+        return torch.from_numpy(a)
 
 
 def background_plate(frames: np.ndarray, labels: np.ndarray, margin: int = 2, inpaint_radius: int = 5) -> BackgroundPlate:
