@@ -14,7 +14,7 @@ import torch
 from adnerf.evaluation.evaluate import evaluate_run
 from adnerf.evaluation.fitted_poses import judged_poses
 from adnerf.formats.dataset import load_dataset
-from adnerf.model.pose_refine import PoseCorrections, _inside, corrected, corrected_matrices, fit_corrections
+from adnerf.model.pose_refine import PoseCorrections, _inside, composed, corrected, corrected_matrices, fit_corrections
 from adnerf.model.render_clip import dataset_track, frame_setup, frame_signals, render_frames
 from adnerf.model.run_folder import load_run
 from adnerf.model.train import TrainConfig, train
@@ -188,3 +188,85 @@ def test_evaluation_judges_fitted_or_tracked_poses(scene: Path, run: Path) -> No
     with pytest.raises(ValueError, match="poses must be"):
         judged_poses(loaded, ds, test, "truth")
     assert json.loads(json.dumps(metrics))["split"] == "test"
+
+
+def test_composed_corrections_move_a_pose_as_the_two_in_turn() -> None:
+    g = torch.Generator().manual_seed(5)
+    first, then = ((torch.rand(2, 4, 6, generator=g, dtype=torch.float64) - 0.5) * 0.6 for _ in range(2))
+    pose = _pose(3)
+    poses = HeadPose(pose.R.expand(2, 4, 3, 3), pose.t.expand(2, 4, 3))
+    twice, once = corrected(corrected(poses, first), then), corrected(poses, composed(first, then))
+    # A swapped product of the turns, or tau_2 taken along the tracked head's axes, fails here.
+    torch.testing.assert_close(once.R, twice.R, rtol=0, atol=1e-14)
+    torch.testing.assert_close(once.t, twice.t, rtol=0, atol=1e-14)
+    zero = torch.zeros(3, 6, dtype=torch.float64)
+    assert torch.equal(composed(zero, zero), zero)  # identity turns: no NaN from the axis-angle log
+    torch.testing.assert_close(composed(first[0], torch.zeros_like(first[0])), first[0], rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="alike"):
+        composed(zero, torch.zeros(3, 3, dtype=torch.float64))
+
+
+def _fake_fit(calls: list, move: np.ndarray):
+    def fit(model, camera, plate, images, labels, poses, codes, **kw):  # noqa: ANN001, ANN202, ARG001
+        calls.append({"n": len(images), "poses": poses.copy(), "exclude": kw["exclude"], "steps": kw["steps"]})
+        return np.tile(move, (len(images), 1))
+
+    return fit
+
+
+def test_pose_refits_compose_the_fits_move_at_their_steps_and_resume_once(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``pose_refit`` 2 over 8 head iterations: passes before step 4 and at the stage's end, each
+    composing the fit's move onto every training frame's correction (pose_start 1: the
+    corrections learn nothing else), and a run cut after the first pass and resumed makes the
+    second only."""
+    import adnerf.model.train as train_module
+
+    ds = load_dataset(scene)
+    move = np.array([0.01, -0.02, 0.005, 0.003, 0.0, -0.004])
+    cfg = TrainConfig(head_iters=8, torso_iters=0, rays=64, log_every=1, checkpoint_every=1, pose_start=1.0, pose_refit=2)
+    for name, cut in (("straight", None), ("cut", 5)):
+        calls: list = []
+        monkeypatch.setattr(train_module, "fit_corrections", _fake_fit(calls, move))
+        root = tmp_path / name
+        train(scene, root, config=cfg, progress=False, max_steps=cut)
+        if cut is not None:
+            assert sum(c["n"] for c in calls) == len(ds.meta.train)  # one pass before step 4, none yet at the end
+            train(scene, root, progress=False, resume=True)
+        assert sum(c["n"] for c in calls) == 2 * len(ds.meta.train)  # each pass once, resumed or not
+        delta = load_run(root).pose_corrections
+        twice = composed(torch.as_tensor(move), torch.as_tensor(move)).numpy()
+        np.testing.assert_allclose(delta[ds.meta.train], np.tile(twice, (len(ds.meta.train), 1)), atol=1e-15)
+        assert not delta[ds.meta.test].any()  # held-out frames are never fitted in training
+        # The second pass starts from the poses the first left.
+        np.testing.assert_allclose(calls[-1]["poses"], corrected_matrices(ds.poses[ds.meta.train[-calls[-1]["n"]:]], np.tile(move, (calls[-1]["n"], 1))), atol=1e-12)
+        rows = [json.loads(line) for line in (root / "log.jsonl").read_text().splitlines()]
+        assert [(r["pose_refit"], r["step"]) for r in rows if "pose_refit" in r] == [(1, 4), (2, 8)]
+    for bad in (TrainConfig(pose_refit=-1), TrainConfig(pose_refit=1, pose_lr=0.0)):
+        with pytest.raises(ValueError, match="pose_refit"):
+            bad.validate()
+
+
+def test_a_pose_refit_aligns_training_frames_given_a_known_error(scene: Path, run: Path, tmp_path: Path) -> None:
+    """The real refit on a trained head whose training frames' corrections are set to a known
+    error: one pass takes most of the error back out (a sign error in composing the fit's move
+    doubles it instead)."""
+    from adnerf.formats.dataset import load_dataset as load
+    from adnerf.model.train import Trainer, mouth_plan
+    from adnerf.model.talking_head import ModelConfig
+
+    ds = load(scene, truth=False)
+    doc = json.loads((run / "run.json").read_text())
+    tcfg = TrainConfig.from_stored(doc["train"])
+    (tmp_path / "refit").mkdir()
+    tr = Trainer(tmp_path / "refit", ds, ModelConfig.from_dict(doc["model"]), tcfg, "cpu", False, plan=mouth_plan(ds, tcfg))
+    tr.load(torch.load(run / "checkpoint.pt", weights_only=False))
+    frames = torch.as_tensor(ds.meta.train)
+    before = tr.pose_fix.delta.detach()[frames].clone()
+    # Within a pass's reach: 40 steps at a learning rate decaying from 1e-3 move at most ~0.016.
+    error = torch.tensor([0.0, 0.012, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    with torch.no_grad():
+        tr.pose_fix.delta[frames] = composed(before, error.expand(len(frames), 6))
+    tr.refit_poses()
+    after = tr.pose_fix.delta.detach()[frames]
+    off = (after[:, 1] - before[:, 1]).abs().mean()  # the yaw left of the error, about the learnt one
+    assert off < 0.5 * 0.012 and tr.pose_refits == 1, off

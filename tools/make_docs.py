@@ -181,6 +181,7 @@ def real_minute() -> list[str]:
         "",
         *variant_rows(m256["field_gain"], "Where the mouth's amplitude is lost"),
         *variant_rows(m256["head_gate"], "The audio code gated by position"),
+        *variant_rows(m256["pose_refit"], "The training frames' poses refitted with the field frozen"),
         "Preprocessing, seconds per step:",
         "",
         table(

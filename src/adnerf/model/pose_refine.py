@@ -23,7 +23,7 @@ from typing import Callable, Mapping
 import numpy as np
 import torch
 import torch.nn.functional as F
-from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
@@ -32,7 +32,7 @@ from ..formats.dataset import LABEL_HEAD
 from ..pose import HeadPose
 from .conditions import FrameCondition
 
-__all__ = ["POSE_DOF", "PoseCorrections", "batch_loss", "corrected", "corrected_matrices", "fit_corrections"]
+__all__ = ["POSE_DOF", "PoseCorrections", "batch_loss", "composed", "corrected", "corrected_matrices", "fit_corrections"]
 
 POSE_DOF = 6
 """Numbers of a correction: axis-angle ``omega`` (3, radians), then ``tau`` (3, scene units)."""
@@ -52,6 +52,23 @@ def corrected_matrices(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """:func:`corrected` on pose matrices ``(N, 4, 4)`` and corrections ``(N, 6)`` (numpy, float64)."""
     pose = HeadPose.from_matrix(torch.as_tensor(np.asarray(poses, dtype=np.float64)))
     return corrected(pose, torch.as_tensor(np.asarray(delta, dtype=np.float64))).matrix().numpy()
+
+
+def composed(first: Tensor, then: Tensor) -> Tensor:
+    """The one correction ``(..., 6)`` that moves a pose as ``first`` and then ``then`` do
+    (``(..., 6)`` each, ``then`` applied to the pose ``first`` made):
+    ``corrected(corrected(pose, first), then) == corrected(pose, composed(first, then))``. Turns
+    compose as ``exp(omega) = exp(omega_1) exp(omega_2)``, shifts as ``tau = tau_1 + exp(omega_1)
+    tau_2`` (``tau_2`` lies along the once-corrected head's axes). Float64; turns below pi."""
+    if first.shape != then.shape or first.shape[-1] != POSE_DOF:
+        raise ValueError(f"corrections must both be (..., {POSE_DOF}) alike; got {tuple(first.shape)} and {tuple(then.shape)}")
+    first, then = first.to(torch.float64), then.to(first.device, torch.float64)
+    batch = first.shape[:-1]
+    turn_1 = axis_angle_to_rotation_matrix(first[..., :3].reshape(-1, 3))
+    turn_2 = axis_angle_to_rotation_matrix(then[..., :3].reshape(-1, 3))
+    omega = rotation_matrix_to_axis_angle(turn_1 @ turn_2).reshape(*batch, 3)
+    tau = first[..., 3:] + (turn_1 @ then[..., 3:].reshape(-1, 3, 1)).reshape(*batch, 3)
+    return torch.cat([omega, tau], dim=-1)
 
 
 class PoseCorrections(nn.Module):

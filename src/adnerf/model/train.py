@@ -76,7 +76,7 @@ from .blinks import BLINKING, blinks_in
 from .conditions import SIGNALS, FrameCondition
 from .distributed import Ranks, init_ranks
 from .masks import BitRows
-from .pose_refine import PoseCorrections, batch_loss
+from .pose_refine import PoseCorrections, batch_loss, composed, corrected_matrices, fit_corrections
 from .mouth_target import MouthProbe, mouth_targets, opening_signal
 from .run_folder import (
     RESUMABLE,
@@ -179,6 +179,14 @@ class Batch:
     generator: "torch.Generator | Shard"
 
 
+REFIT_STEPS = 40
+"""Adam steps of each training frame's correction in a pose refit (``TrainConfig.pose_refit``)."""
+REFIT_RAYS = 64
+"""Rays of each frame a step of a pose refit renders."""
+REFIT_GROUP = 32
+"""Frames a pose refit fits together (one render call a step)."""
+REFIT_CHUNK = 8 * REFIT_GROUP
+"""Frames a pose refit reads out of the dataset at a time."""
 NECK_BAND = 0.1
 """How far the torso may reach behind the head, as a fraction of the head label's height."""
 
@@ -425,6 +433,7 @@ class Trainer:
         if tcfg.pose_lr > 0:
             self.pose_fix = PoseCorrections(ds.meta.n_frames).to(device)
             self.opt_pose = torch.optim.Adam(self.pose_fix.parameters(), lr=tcfg.pose_lr)
+        self.pose_refits = 0  # refit passes done (pose_refit), kept in the checkpoint
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.steps = {name: 0 for name in self.stages}  # finished iterations, by stage
         self.elapsed = {name: 0.0 for name in self.stages}  # seconds spent in steps, by stage
@@ -516,7 +525,7 @@ class Trainer:
         if self.mouth_probe is not None:
             state["mouth_probe"] = {"model": self.mouth_probe.state_dict(), "opt": self.opt_probe.state_dict()}
         if self.pose_fix is not None:
-            state["pose_corrections"] = {"delta": self.pose_fix.delta.detach().clone(), "opt": self.opt_pose.state_dict()}
+            state["pose_corrections"] = {"delta": self.pose_fix.delta.detach().clone(), "opt": self.opt_pose.state_dict(), "refits": self.pose_refits}
         save_atomic(state, self.files.checkpoint)
 
     def load(self, ckpt: dict) -> None:
@@ -536,6 +545,7 @@ class Trainer:
             with torch.no_grad():
                 self.pose_fix.delta.copy_(ckpt["pose_corrections"]["delta"])
             self.opt_pose.load_state_dict(ckpt["pose_corrections"]["opt"])
+            self.pose_refits = int(ckpt["pose_corrections"].get("refits", 0))
         log = self.files.log
         if log.exists() and self.ranks.main:
             done = self.steps
@@ -598,6 +608,50 @@ class Trainer:
         groups = [(frame, pix, self.condition(frame, code, pose)) for frame, pix, code, pose in zip(frames, pixels, codes, poses)]
         self.maybe_update_occupancy(layer, step, iters, groups[0][2])
         return groups
+
+    def refit_poses(self) -> None:
+        """One pose refit pass (``TrainConfig.pose_refit``): every training frame's correction is
+        fitted again with the field frozen, from the learnt one on
+        (:func:`~adnerf.model.pose_refine.fit_corrections` on the inside of the head label, outside
+        the mouth box, under the frame's own audio code and signals), and the fit's move is
+        composed onto it. Learnt in stage 1 a few draws a frame, the corrections stay far from
+        the pixels' best pose; the refit aligns them at once. The corrections' Adam moments are
+        reset (they pointed at the old values). Every process fits alike (same field, seed and
+        draws), so the corrections stay equal across processes."""
+        if self.pose_fix is None:
+            raise RuntimeError("pose_refit needs learnt corrections (pose_lr > 0)")
+        t0 = time.perf_counter()
+        frames = np.asarray(self.ds.meta.train, dtype=np.int64)
+        model, dev = self.model, self.device
+        with torch.no_grad():
+            codes = model.frame_codes(self.windows)[torch.as_tensor(frames, device=dev)]
+            learnt = self.pose_fix.delta.detach()[torch.as_tensor(frames, device=dev)]
+        start = corrected_matrices(np.asarray(self.ds.poses[frames], dtype=np.float64), learnt.cpu().numpy())
+        from ..evaluation.boxes import mouth_boxes_at  # evaluation imports the model package
+
+        boxes = mouth_boxes_at(self.ds.meta, HeadPose.from_matrix(torch.as_tensor(start)), MOUTH_CROP)
+        eye = None if self.eye is None else self.eye.cpu().numpy()[frames]
+        signals = {name: values.cpu().numpy()[frames] for name, values in self.tracks.items()}
+        plate = self.plate.reshape(self.ds.meta.height, self.ds.meta.width, 3)
+        move = np.zeros((len(frames), 6), dtype=np.float64)
+        bar = tqdm(total=len(frames), desc=f"refit poses ({self.pose_refits + 1})", unit="frame", disable=not self.progress, dynamic_ncols=True)
+        try:  # a chunk of frames at a time: a clip's frames are not copied out of the dataset at once
+            for lo in range(0, len(frames), REFIT_CHUNK):
+                part = slice(lo, lo + REFIT_CHUNK)
+                move[part] = fit_corrections(
+                    model, self.camera, plate, self.ds.frames[frames[part]], self.ds.parsing[frames[part]], start[part], codes[part],
+                    eye=None if eye is None else eye[part], signals={name: values[part] for name, values in signals.items()}, exclude=boxes[part],
+                    steps=REFIT_STEPS, rays=REFIT_RAYS, group=REFIT_GROUP, lr=1e-3, amp=self.tcfg.amp, seed=self.tcfg.seed + 1 + self.pose_refits + lo,
+                )  # fmt: skip
+                bar.update(len(frames[part]))
+        finally:
+            bar.close()
+        with torch.no_grad():
+            self.pose_fix.delta[torch.as_tensor(frames, device=dev)] = composed(learnt, torch.as_tensor(move, device=dev))
+        self.opt_pose.state.clear()
+        self.pose_refits += 1
+        turn = np.degrees(np.linalg.norm(move[:, :3], axis=1))
+        self.log({"stage": "head", "step": self.steps["head"], "pose_refit": self.pose_refits, "frames": len(frames), "seconds": time.perf_counter() - t0, "mean_turn_deg": float(turn.mean())})
 
     def pose_of(self, frame: int) -> HeadPose:
         """Frame ``frame``'s head pose: the tracked one moved by its learnt correction (with
@@ -866,7 +920,12 @@ class Trainer:
         teaches_eye = stage.trains_audio and "eye" in self.model.layers[stage.layer].conditions
         self.model.train()
 
+        refits = tcfg.pose_refit if stage.layer == "head" and self.pose_fix is not None and stage.iters > 0 else 0
+        refit_at = [round(i * stage.iters / refits) for i in range(1, refits + 1)]  # the last: the stage's end
+
         def step_fn(step: int) -> tuple[float, float]:
+            while self.pose_refits < refits and step >= refit_at[self.pose_refits]:
+                self.refit_poses()
             sched.set(step)
             if stage.trains_audio:
                 self.model.set_audio_smoothing(step >= tcfg.att_start * stage.iters)
@@ -884,6 +943,12 @@ class Trainer:
             self._loop(stage, step_fn, max_steps)
         finally:
             self.poses_learning = False
+        if refits and self.steps[stage.name] >= stage.iters and self.pose_refits < refits:
+            t0 = time.perf_counter()
+            while self.pose_refits < refits:
+                self.refit_poses()
+            self.elapsed[stage.name] += time.perf_counter() - t0  # as a pass inside the stage's steps is
+            self.save()
 
     def fit(self, stages: Sequence[Stage] | None = None, max_steps: int | None = None) -> None:
         """Run stages of this trainer in order (default: all of them), ``max_steps`` iterations

@@ -90,6 +90,14 @@ class TrainConfig:
             (:mod:`adnerf.model.pose_refine`), learnt in stage 1 with the head and used from then
             on (the torso stage, renders of the training frames); 0: the tracked poses as they are
             (``docs/decisions.md``, *The head poses are fitted to the pixels*).
+        pose_refit: Passes over the training frames that fit each pose correction again with the
+            field frozen (:func:`~adnerf.model.pose_refine.fit_corrections`, ``REFIT_STEPS`` Adam
+            steps of ``REFIT_RAYS`` rays a frame of :mod:`adnerf.model.train`, from the learnt
+            correction on), at ``i / pose_refit`` of stage 1 for ``i = 1 .. pose_refit`` (the
+            last at its end, before the torso stage). Each takes minutes: on the 50 s real clip
+            (1284 training frames) two took about as long as a 256 px, 4345-iteration head
+            stage (``docs/decisions.md``, *Refitting the training frames' poses*). 0 (the
+            default): none. Needs ``pose_lr`` > 0.
         pose_start: Fraction of stage 1 after which the pose corrections learn (the head needs a
             shape to be aligned to first).
     """
@@ -125,6 +133,7 @@ class TrainConfig:
     head_width: int = 0
     head_gate: int = 0
     pose_lr: float = 3e-4
+    pose_refit: int = 0
     pose_start: float = 0.3
 
     def scaled(self, k: int) -> "TrainConfig":
@@ -179,6 +188,8 @@ class TrainConfig:
             raise ValueError("att_start, occupancy_start and pose_start must lie in [0, 1]")
         if self.pose_lr < 0:
             raise ValueError(f"pose_lr must be >= 0 (0: the tracked poses); got {self.pose_lr}")
+        if self.pose_refit < 0 or (self.pose_refit and self.pose_lr == 0):
+            raise ValueError(f"pose_refit is a number of passes, >= 0, and refits learnt corrections (pose_lr > 0); got {self.pose_refit} with pose_lr {self.pose_lr}")
         if self.frames < 1 or self.rays % self.frames:
             raise ValueError(f"frames must be >= 1 and divide rays ({self.rays}); got {self.frames}")
         if self.amp not in AMP_MODES:
