@@ -19,18 +19,9 @@ def mouth_boxes(ds: TalkingHeadDataset, frames: list[int], crop: float = MOUTH_C
 
 def mouth_boxes_at(meta: SceneMeta, pose: HeadPose, crop: float = MOUTH_CROP) -> np.ndarray:
     """Square pixel boxes ``(n, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive) around the mouth
-    under head poses ``pose`` (batch ``(n,)``).
-
-    The side is ``crop`` scene units at the mouth's depth, the same for every frame (its mean),
-    and boxes are shifted to lie inside the image.
-    """
-    uv_t, depth = meta.mouth_in_image(pose)
-    uv = uv_t.numpy()
-    side = int(round(crop * meta.intrinsics[0] / float(depth.mean())))
-    side = max(8, min(side, meta.width, meta.height))
-    x0 = np.clip(np.round(uv[:, 0] - side / 2).astype(int), 0, meta.width - side)
-    y0 = np.clip(np.round(uv[:, 1] - side / 2).astype(int), 0, meta.height - side)
-    return np.stack([x0, y0, x0 + side, y0 + side], axis=1)
+    under head poses ``pose`` (batch ``(n,)``): :meth:`SceneMeta.mouth_boxes
+    <adnerf.formats.dataset.SceneMeta.mouth_boxes>` (training's pose refit reads it there)."""
+    return meta.mouth_boxes(pose, crop)
 
 
 def eye_boxes_at(meta: SceneMeta, pose: HeadPose, crop: float = EYE_CROP) -> np.ndarray:

@@ -270,6 +270,21 @@ class SceneMeta:
         p = pose.from_canonical(mouth.expand(*pose.t.shape[:-1], 3))
         return self.camera(pose.R.dtype, pose.R.device).project(p), p[..., 2]
 
+    def mouth_boxes(self, pose: HeadPose, crop: float = MOUTH_CROP) -> np.ndarray:
+        """Square pixel boxes ``(n, 4)`` as ``(x0, y0, x1, y1)`` (end exclusive) around the mouth
+        under head poses ``pose`` (batch ``(n,)``).
+
+        The side is ``crop`` scene units at the mouth's depth, the same for every frame (its mean),
+        and boxes are shifted to lie inside the image.
+        """
+        uv_t, depth = self.mouth_in_image(pose)
+        uv = uv_t.cpu().numpy()
+        side = int(round(crop * self.intrinsics[0] / float(depth.mean())))
+        side = max(8, min(side, self.width, self.height))
+        x0 = np.clip(np.round(uv[:, 0] - side / 2).astype(int), 0, self.width - side)
+        y0 = np.clip(np.round(uv[:, 1] - side / 2).astype(int), 0, self.height - side)
+        return np.stack([x0, y0, x0 + side, y0 + side], axis=1)
+
     def box(self, name: str, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``head_aabb`` or ``torso_aabb`` as two ``(3,)`` tensors."""
         lo, hi = getattr(self, name)

@@ -627,9 +627,7 @@ class Trainer:
             codes = model.frame_codes(self.windows)[torch.as_tensor(frames, device=dev)]
             learnt = self.pose_fix.delta.detach()[torch.as_tensor(frames, device=dev)]
         start = corrected_matrices(np.asarray(self.ds.poses[frames], dtype=np.float64), learnt.cpu().numpy())
-        from ..evaluation.boxes import mouth_boxes_at  # evaluation imports the model package
-
-        boxes = mouth_boxes_at(self.ds.meta, HeadPose.from_matrix(torch.as_tensor(start)), MOUTH_CROP)
+        boxes = self.ds.meta.mouth_boxes(HeadPose.from_matrix(torch.as_tensor(start)), MOUTH_CROP)
         eye = None if self.eye is None else self.eye.cpu().numpy()[frames]
         signals = {name: values.cpu().numpy()[frames] for name, values in self.tracks.items()}
         plate = self.plate.reshape(self.ds.meta.height, self.ds.meta.width, 3)
