@@ -270,3 +270,26 @@ def test_a_pose_refit_aligns_training_frames_given_a_known_error(scene: Path, ru
     after = tr.pose_fix.delta.detach()[frames]
     off = (after[:, 1] - before[:, 1]).abs().mean()  # the yaw left of the error, about the learnt one
     assert off < 0.5 * 0.012 and tr.pose_refits == 1, off
+    # A pass over some frames (the one a budget's probe times) moves theirs only, and says how long it took.
+    some = ds.meta.train[:2]
+    seconds = tr.refit_poses(some)
+    moved = (tr.pose_fix.delta.detach()[frames] != after).any(dim=1)
+    assert moved[:2].all() and not moved[2:].any() and seconds > 0 and tr.pose_refits == 2
+
+
+def test_timing_a_pose_refit_leaves_the_run_as_it_was(scene: Path, run: Path, tmp_path: Path) -> None:
+    """``pose_refit_seconds`` (bench real's budget counts the passes with it): a positive time per
+    frame from the run's checkpoint, which it does not rewrite; a folder without one is refused."""
+    from adnerf.formats.run_folder import RunError
+    from adnerf.model.train import pose_refit_seconds
+
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    stored = (copy / "checkpoint.pt").read_bytes()
+    per_frame = pose_refit_seconds(copy, scene, frames=2)
+    assert 0 < per_frame < 60 and (copy / "checkpoint.pt").read_bytes() == stored
+    rows = [json.loads(line) for line in (copy / "log.jsonl").read_text().splitlines()]
+    assert rows[-1]["pose_refit"] == 1 and rows[-1]["frames"] == 2  # the timed pass, marked as such
+    (copy / "checkpoint.pt").unlink()
+    with pytest.raises(RunError, match="no checkpoint"):
+        pose_refit_seconds(copy, scene)

@@ -12,7 +12,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from adnerf.bench.real import bench_real, plot_mouth_opening
+from adnerf.bench.real import HEAD_SHARE, bench_real, fitted_schedule, plot_mouth_opening, schedule_config
 from adnerf.bench.voices import mouth_follow
 from adnerf.cli import main
 from adnerf.evaluation.evaluate import head_metrics
@@ -154,6 +154,36 @@ def test_mouth_follow_finds_a_late_mouth() -> None:
     assert row["offset"] == 2 and row["corr_at_offset"] == pytest.approx(1.0, abs=1e-6) and row["corr"] < 0.9
     assert mouth_follow(activity, activity) == {"corr": 1.0, "offset": 0, "corr_at_offset": 1.0}
     assert mouth_follow(np.zeros(20), activity[:20])["corr"] is None  # a still mouth has no correlation
+
+
+def test_a_variants_config_and_its_schedule(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``bench real --config``: the variant's fields over the defaults, its run folder told apart
+    by a hash of them, the benchmark's own fields refused; and the fitted schedule takes the pose
+    refit's passes out of the budget before it splits the rest between the stages."""
+    from adnerf.model.train_config import TrainConfig
+
+    base, tag = schedule_config(None, seed=3)
+    assert tag == "" and base == TrainConfig(seed=3)
+    refit, tag = schedule_config({"pose_refit": 2, "head_width": 96}, seed=0)
+    assert refit.pose_refit == 2 and refit.head_width == 96 and tag.startswith("_cfg") and len(tag) == 12
+    assert schedule_config({"head_width": 96, "pose_refit": 2}, seed=5)[1] == tag  # the order of the keys does not matter
+    assert schedule_config({"pose_refit": 1}, seed=0)[1] != tag
+    for bad, says in (({"head_iters": 10}, "head_iters"), ({"seed": 1}, "seed"), ({"no_such_field": 1}, "invalid training config"), ({"pose_refit": -1}, "pose_refit")):
+        with pytest.raises(ValueError, match=says):
+            schedule_config(bad, seed=0)
+    # 10 minutes at 0.1 s an iteration: 6000 iterations; two 60 s refit passes leave 4800.
+    plain, how = fitted_schedule(base, 10.0, 0.1)
+    assert (plain.head_iters, plain.torso_iters) == (round(HEAD_SHARE * 6000), round((1 - HEAD_SHARE) * 6000)) and "refit" not in how
+    fitted, how = fitted_schedule(refit, 10.0, 0.1, refit_pass=60.0)
+    assert (fitted.head_iters, fitted.torso_iters) == (round(HEAD_SHARE * 4800), round((1 - HEAD_SHARE) * 4800)) and "2 pose refit passes ~120 s" in how
+    assert fitted.pose_refit == 2 and fitted.head_width == 96
+    with pytest.raises(ValueError, match="give more minutes"):
+        fitted_schedule(refit, 2.0, 0.1, refit_pass=59.0)
+    # The command line reads the variant from a JSON file, and refuses a bad one before any work.
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"torso_iters": 5}')
+    assert main(["bench", "real", str(tmp_path / "clip.mp4"), "--config", str(bad), "--work", str(tmp_path / "never")]) == 2
+    assert "torso_iters" in capsys.readouterr().err and not (tmp_path / "never").exists()
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,7 @@ from ..commands.options import (
     add_json,
     add_metric_weights,
     checked_device,
+    config_file,
     count,
     emit,
     head_torso_iters,
@@ -116,6 +117,7 @@ def _register_real(sub: argparse._SubParsersAction) -> None:
     add_metric_weights(p)
     p.add_argument("--seed", type=number(int, 0), default=0, help="training seed")
     p.add_argument("--iters", type=head_torso_iters, default=None, help="HEAD,TORSO iterations instead of the schedule fitted to --minutes (equal schedules for comparisons)")
+    p.add_argument("--config", default=None, help="JSON file of TrainConfig fields other than the iterations and seed (a variant, e.g. {\"pose_refit\": 2}); its run folder's name carries a hash of them, and the fitted schedule counts pose refits in the budget")
     p.add_argument("--drive", action="append", default=[], metavar="AUDIO", help="another speech file to drive the trained run with (repeat for more); reports how its lips follow that speech")
     p.add_argument("--sweep", type=count, default=6, metavar="FRAMES", help="held-out frames rendered with the head turned by 0, 5, 10, 15 and 20 degrees of yaw (face geometry, sharpness, neck, torso against the un-edited render; a contact sheet); 0 skips it")
     p.add_argument("--plot", default=None, help="write a PNG of the true and rendered mouth opening over the held-out frames")
@@ -150,7 +152,7 @@ def _run_real(args: argparse.Namespace) -> int:
         row = bench_real(
             args.video, size=args.size or None, minutes=args.minutes, device=checked_device(args.device), cut=args.cut, clothes=args.clothes,
             features=args.features, test_fraction=args.test_fraction, focal=args.focal, work=args.work, lpips_backbone=args.lpips_backbone,
-            lpips_linear=args.lpips_linear, syncnet=args.syncnet, seed=args.seed, iterations=args.iters, drive=tuple(args.drive), sweep=args.sweep, log=log,
+            lpips_linear=args.lpips_linear, syncnet=args.syncnet, seed=args.seed, iterations=args.iters, config=config_file(args.config), drive=tuple(args.drive), sweep=args.sweep, log=log,
         )  # fmt: skip
     except ValueError as exc:
         raise CliError(str(exc)) from exc

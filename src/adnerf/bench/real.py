@@ -31,13 +31,14 @@ frame and labels) and the process's peak resident memory.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import shutil
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Mapping
 
 import cv2
 import numpy as np
@@ -47,6 +48,9 @@ from ..formats.run_folder import RunFolder
 from ..memory import peak_rss_bytes
 
 __all__ = ["bench_real", "drive_with_speech", "plot_mouth_opening", "resized_video"]
+
+if TYPE_CHECKING:
+    from ..model.train_config import TrainConfig
 
 HEAD_SHARE = 0.55  # of the training budget; the rest is the torso's (the demo's 3600 : 3000)
 
@@ -75,21 +79,63 @@ def resized_video(video: str | Path, size: int | None, folder: Path) -> tuple[Pa
     return out, {**info, "width": nw, "height": nh}
 
 
-def _probe_seconds_per_iteration(dataset: Path, folder: Path, device: str, seed: int, steps: int = 30) -> float:
-    """Training seconds per head iteration, from a throwaway run of ``steps`` iterations (removed
+def _probe_seconds(dataset: Path, folder: Path, device: str, tcfg: "TrainConfig", steps: int = 30) -> tuple[float, float]:
+    """Training seconds per head iteration, and per training frame of a pose refit pass (0 when
+    ``tcfg`` asks for none), from a throwaway run of ``steps`` iterations under ``tcfg`` (removed
     afterwards; it lies in the benchmark's own work folder). Measured before empty-space skipping
-    starts, so it errs slow and the fitted schedule ends inside the budget."""
-    from ..model.train import TrainConfig, train
+    starts, so both err slow and the fitted schedule ends inside the budget."""
+    from ..model.train import pose_refit_seconds, train
 
     probe = folder / "probe_run"
     shutil.rmtree(probe, ignore_errors=True)
-    cfg = TrainConfig(head_iters=10 * steps, checkpoint_every=steps, log_every=steps, seed=seed)
+    cfg = replace(tcfg, head_iters=10 * steps, checkpoint_every=steps, log_every=steps, pose_refit=0)
     try:
         train(dataset, probe, config=cfg, device=device, progress=False, max_steps=steps)
-        elapsed = RunFolder(probe).elapsed()["head"]
+        per_iteration = RunFolder(probe).elapsed()["head"] / steps
+        per_frame = pose_refit_seconds(probe, dataset, device=device) if tcfg.pose_refit else 0.0
     finally:
         shutil.rmtree(probe, ignore_errors=True)
-    return elapsed / steps
+    return per_iteration, per_frame
+
+
+def schedule_config(config: Mapping[str, object] | None, seed: int) -> tuple["TrainConfig", str]:
+    """The training config of a benchmark run: ``config``'s :class:`TrainConfig` fields over the
+    defaults, with ``seed``; and the run folder's suffix that tells such a run from the default's
+    (empty without ``config``). The iteration counts are the benchmark's (``iterations`` or the
+    fitted schedule), so ``config`` may not give them.
+
+    Raises:
+        ValueError: ``config`` gives the iteration counts or the seed, or is not a valid config.
+    """
+    from ..model.train import TrainConfig
+
+    given = dict(config or {})
+    owned = sorted(k for k in ("head_iters", "torso_iters", "seed") if k in given)
+    if owned:
+        raise ValueError(f"the training config may not set {', '.join(owned)}: the benchmark's --iters (or the schedule fitted to --minutes) and --seed do")
+    try:
+        tcfg = TrainConfig.from_dict({**given, "seed": seed})
+        tcfg.validate()
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"invalid training config: {exc}") from exc
+    tag = "_cfg" + hashlib.sha1(json.dumps(given, sort_keys=True).encode()).hexdigest()[:8] if given else ""
+    return tcfg, tag
+
+
+def fitted_schedule(base: "TrainConfig", minutes: float, per_iteration: float, refit_pass: float = 0.0) -> tuple["TrainConfig", str]:
+    """``base`` with the iteration counts that fill ``minutes`` of training: the time left after
+    ``base.pose_refit`` passes of ``refit_pass`` seconds each, at ``per_iteration`` seconds an
+    iteration, split :data:`HEAD_SHARE` to the head; and how they were fitted, in words.
+
+    Raises:
+        ValueError: The refit passes leave fewer than 100 iterations.
+    """
+    refits = base.pose_refit * refit_pass
+    total = (minutes * 60.0 - refits) / per_iteration
+    if refits and total < 100:
+        raise ValueError(f"{minutes:g} min leaves {max(total, 0):.0f} iterations after the {base.pose_refit} pose refit passes (~{refits / 60:.1f} min); give more minutes or fewer passes")
+    tcfg = replace(base, head_iters=max(1, round(HEAD_SHARE * total)), torso_iters=max(1, round((1 - HEAD_SHARE) * total)))
+    return tcfg, f"{per_iteration * 1e3:.0f} ms each" + (f", {base.pose_refit} pose refit passes ~{refits:.0f} s" if refits else "") + f", fitted to {minutes:g} min"
 
 
 def _sheet(path: Path, ds, frames: list[int], rendered: np.ndarray, count: int = 5) -> Path:
@@ -188,6 +234,7 @@ def bench_real(
     syncnet: str | Path | None = None,
     seed: int = 0,
     iterations: tuple[int, int] | None = None,
+    config: Mapping[str, object] | None = None,
     drive: tuple[str | Path, ...] = (),
     sweep: int = 6,
     progress: bool = True,
@@ -213,6 +260,10 @@ def bench_real(
         seed: Training seed.
         iterations: ``(head, torso)`` iterations instead of the schedule fitted to ``minutes``
             (the probe's speed depends on the machine's load; comparisons want equal schedules).
+        config: :class:`~adnerf.model.train.TrainConfig` fields other than the iteration counts
+            and the seed, over the defaults (a variant to compare; its run folder's name carries a
+            hash of them, so it never continues another variant's run). The fitted schedule
+            counts a pose refit's passes (``pose_refit``) in the budget.
         drive: Other speech files to drive the trained run with (step 6).
         sweep: Held-out frames rendered with the head turned by each of
             :data:`~adnerf.evaluation.pose_sweep.SWEEP_YAWS` (:func:`~adnerf.evaluation.pose_sweep.pose_sweep`),
@@ -228,12 +279,13 @@ def bench_real(
     from ..evaluation.lpips import lpips_if_available
     from ..evaluation.syncnet import load_syncnet
     from ..formats.dataset import frame_bytes, load_dataset
-    from ..model.train import TrainConfig, load_run, train
+    from ..model.train import load_run, train
     from ..preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
     sync = load_syncnet(syncnet, device) if syncnet is not None else None  # a bad file fails before hours of work
     if not minutes > 0 or not math.isfinite(minutes):
         raise ValueError(f"the training budget must be a positive number of minutes; got {minutes}")
+    base, tag = schedule_config(config, seed)  # a bad config fails before hours of work
     for path in drive:  # before hours of work
         if not Path(path).is_file():
             raise ValueError(f"{path}: no such audio file to drive the run with")
@@ -247,7 +299,7 @@ def bench_real(
 
     data = folder / "data"
     pcfg = PreprocessConfig(cut=cut, clothes=clothes, features=features, test_fraction=test_fraction, focal=focal)
-    run_dir = folder / (f"run_{iterations[0]}+{iterations[1]}it_seed{seed}" if iterations else f"run_{minutes:g}min_seed{seed}")
+    run_dir = folder / ((f"run_{iterations[0]}+{iterations[1]}it_seed{seed}" if iterations else f"run_{minutes:g}min_seed{seed}") + tag)
     t0 = time.perf_counter()
     report_path = DatasetFolder(data).report
     if not (report_path.exists() and {**asdict(PreprocessConfig()), **json.loads(report_path.read_text())["config"]} == asdict(pcfg)):  # settings added since take their defaults
@@ -264,13 +316,11 @@ def bench_real(
         train(data, run_dir, device=device, resume=True, progress=progress)
     else:
         if iterations is not None:
-            tcfg = TrainConfig(head_iters=iterations[0], torso_iters=iterations[1], seed=seed)
+            tcfg = replace(base, head_iters=iterations[0], torso_iters=iterations[1])
             how = "given"
         else:
-            per_iteration = _probe_seconds_per_iteration(data, folder, device, seed)
-            total = minutes * 60.0 / per_iteration
-            tcfg = TrainConfig(head_iters=max(1, round(HEAD_SHARE * total)), torso_iters=max(1, round((1 - HEAD_SHARE) * total)), seed=seed)
-            how = f"{per_iteration * 1e3:.0f} ms each, fitted to {minutes:g} min"
+            per_iteration, refit_per_frame = _probe_seconds(data, folder, device, base)
+            tcfg, how = fitted_schedule(base, minutes, per_iteration, refit_per_frame * len(load_dataset(data, truth=False).meta.train))
         log(f"training {tcfg.head_iters} head + {tcfg.torso_iters} torso iterations ({how}) into {run_dir}")
         train(data, run_dir, config=tcfg, device=device, progress=progress)
     seconds["train_wall"] = time.perf_counter() - t0
@@ -327,6 +377,7 @@ def bench_real(
         "held_out_frames": len(ds.meta.test),
         "train_frames": len(ds.meta.train),
         "budget_minutes": minutes,
+        "config": dict(config or {}),
         "head_iters": run.train_config.head_iters,
         "torso_iters": run.train_config.torso_iters,
         "train_seconds": elapsed["head"] + elapsed["torso"],

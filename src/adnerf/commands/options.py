@@ -22,6 +22,7 @@ __all__ = [
     "add_overwrite",
     "angle",
     "checked_device",
+    "config_file",
     "count",
     "emit",
     "head_torso_iters",
@@ -149,6 +150,20 @@ def checked_device(name: str) -> str:
     if name not in ("cpu", "cuda"):
         raise CliError(f"unknown device {name!r}; use cpu or cuda")
     return name
+
+
+def config_file(path: str | None) -> dict:
+    """``--config``: a JSON object of :class:`TrainConfig` fields (empty without the option)."""
+    if not path:
+        return {}
+    try:
+        with open(path) as f:
+            doc = json.loads(f.read())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CliError(f"{path}: not a readable JSON training config ({exc})") from exc
+    if not isinstance(doc, dict):
+        raise CliError(f"{path}: a training config is a JSON object of TrainConfig fields (e.g. {{\"rays\": 2048}}); got a {type(doc).__name__}")
+    return dict(doc)
 
 
 def log(message: str) -> None:

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 
 from ..formats.run_folder import RunError, RunFolder
 from ..model.run_folder import stored_config
 from ..model.train import train
 from ..model.train_config import TrainConfig
-from .options import CliError, add_device, checked_device, count, number
+from .options import CliError, add_device, checked_device, config_file, count, number
 
 __all__ = ["register", "run", "train_config"]
 
@@ -29,24 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _config_file(path: str | None) -> dict:
-    """``--config``: a JSON object of :class:`TrainConfig` fields (empty without the option)."""
-    if not path:
-        return {}
-    try:
-        with open(path) as f:
-            doc = json.loads(f.read())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CliError(f"{path}: not a readable JSON training config ({exc})") from exc
-    if not isinstance(doc, dict):
-        raise CliError(f"{path}: a training config is a JSON object of TrainConfig fields (e.g. {{\"rays\": 2048}}); got a {type(doc).__name__}")
-    return dict(doc)
-
-
 def train_config(args: argparse.Namespace) -> TrainConfig:
     """The schedule: ``--config`` keys, then ``--amp`` and ``--iters``, over the defaults (a new
     run) or over the run's stored schedule (``--resume``), so a resume changes only what is given."""
-    doc = _config_file(args.config)
+    doc = config_file(args.config)
     if getattr(args, "amp", None):
         doc["amp"] = args.amp
     base = TrainConfig()

@@ -105,7 +105,7 @@ from .talking_head import (
 from .train_config import TrainConfig
 
 # The run folder and the schedule live in their own modules; re-exported for existing imports.
-__all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "Trainer", "TrainingInterrupted", "load_run", "resumed_config", "stored_config", "train"]
+__all__ = ["RESUMABLE", "Run", "RunError", "TrainConfig", "Trainer", "TrainingInterrupted", "load_run", "pose_refit_seconds", "resumed_config", "stored_config", "train"]
 
 
 
@@ -609,19 +609,23 @@ class Trainer:
         self.maybe_update_occupancy(layer, step, iters, groups[0][2])
         return groups
 
-    def refit_poses(self) -> None:
-        """One pose refit pass (``TrainConfig.pose_refit``): every training frame's correction is
-        fitted again with the field frozen, from the learnt one on
+    def refit_poses(self, frames: Sequence[int] | None = None) -> float:
+        """One pose refit pass (``TrainConfig.pose_refit``): every training frame's correction
+        (or those of ``frames``) is fitted again with the field frozen, from the learnt one on
         (:func:`~adnerf.model.pose_refine.fit_corrections` on the inside of the head label, outside
         the mouth box, under the frame's own audio code and signals), and the fit's move is
         composed onto it. Learnt in stage 1 a few draws a frame, the corrections stay far from
         the pixels' best pose; the refit aligns them at once. The corrections' Adam moments are
         reset (they pointed at the old values). Every process fits alike (same field, seed and
-        draws), so the corrections stay equal across processes."""
+        draws), so the corrections stay equal across processes.
+
+        Returns:
+            The pass's seconds.
+        """
         if self.pose_fix is None:
             raise RuntimeError("pose_refit needs learnt corrections (pose_lr > 0)")
         t0 = time.perf_counter()
-        frames = np.asarray(self.ds.meta.train, dtype=np.int64)
+        frames = np.asarray(self.ds.meta.train if frames is None else frames, dtype=np.int64)
         model, dev = self.model, self.device
         with torch.no_grad():
             codes = model.frame_codes(self.windows)[torch.as_tensor(frames, device=dev)]
@@ -649,7 +653,9 @@ class Trainer:
         self.opt_pose.state.clear()
         self.pose_refits += 1
         turn = np.degrees(np.linalg.norm(move[:, :3], axis=1))
-        self.log({"stage": "head", "step": self.steps["head"], "pose_refit": self.pose_refits, "frames": len(frames), "seconds": time.perf_counter() - t0, "mean_turn_deg": float(turn.mean())})
+        seconds = time.perf_counter() - t0
+        self.log({"stage": "head", "step": self.steps["head"], "pose_refit": self.pose_refits, "frames": len(frames), "seconds": seconds, "mean_turn_deg": float(turn.mean())})
+        return seconds
 
     def pose_of(self, frame: int) -> HeadPose:
         """Frame ``frame``'s head pose: the tracked one moved by its learnt correction (with
@@ -1082,3 +1088,30 @@ def train(
             trainer.save()
         ranks.barrier()
     return root
+
+
+def pose_refit_seconds(run_dir: str | Path, dataset: str | Path, *, device: str = "cpu", frames: int = REFIT_GROUP) -> float:
+    """Seconds a pose refit pass (``TrainConfig.pose_refit``) spends on each training frame, timed
+    on the first ``frames`` training frames with a run's field as its checkpoint holds it.
+
+    For schedules fitted to a time budget (``bench real``): a pass's cost grows with the clip's
+    training frames, not with the stage's iterations. The timed frames' corrections are refitted
+    in memory and not saved: the checkpoint is not rewritten (the run's log gets the timed pass's
+    row, marked with its frame count).
+
+    Raises:
+        RunError: ``run_dir`` holds no checkpoint, or its run does not learn pose corrections.
+    """
+    root = Path(run_dir)
+    files = RunFolder(root)
+    if not files.checkpoint.exists():
+        raise RunError(f"{root}: no checkpoint to time a pose refit with")
+    ds = load_dataset(dataset, truth=False)
+    doc = read_run_doc(root)
+    mcfg, tcfg = ModelConfig.from_dict(doc["model"]), TrainConfig.from_stored(doc["train"])
+    if tcfg.pose_lr <= 0:
+        raise RunError(f"{root}: its run learns no pose corrections (pose_lr 0), so there is no refit to time")
+    trainer = Trainer(root, ds, mcfg, tcfg, device, False, Ranks(), mouth_plan(ds, tcfg))
+    trainer.load(read_checkpoint(files.checkpoint, device))
+    picked = list(ds.meta.train)[: max(1, frames)]
+    return trainer.refit_poses(picked) / len(picked)
