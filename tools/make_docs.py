@@ -135,6 +135,7 @@ def real_minute() -> list[str]:
         ("256 px, default", {**m256["row"], **default}),
         ("256 px, no mouth target", {**m256["row"], **before}),
         ("512 px, 45 min", m512["row"]),
+        ("512 px, 45 min, pose_refit 2", m512["pose_refit"]["row"]),
     ]
     out = [
         "## Real footage: the 50 s clip",
@@ -144,6 +145,7 @@ def real_minute() -> list[str]:
         f"- 256 px: `{m256['command']}`; the default column is the run with the mouth target "
         f"(`lip_weight` 0.01: {m256['mouth_target']['what']}).",
         f"- 512 px: `{m512['command']}` ({m512['note']}).",
+        f"- 512 px, pose_refit 2: `{m512['pose_refit']['command']}` ({m512['pose_refit']['note']}).",
         "",
         real_columns(columns, [
             ("iterations (head + torso)", iters),
