@@ -278,7 +278,7 @@ def bench_real(
     from ..evaluation.lip_signal import dataset_lip_signal
     from ..evaluation.lpips import lpips_if_available
     from ..evaluation.syncnet import load_syncnet
-    from ..formats.dataset import frame_bytes, load_dataset
+    from ..formats.dataset import frame_bytes, load_dataset, read_meta
     from ..model.train import load_run, train
     from ..preprocess.pipeline import PreprocessConfig, preprocess_video, step_bars
 
@@ -320,7 +320,7 @@ def bench_real(
             how = "given"
         else:
             per_iteration, refit_per_frame = _probe_seconds(data, folder, device, base)
-            tcfg, how = fitted_schedule(base, minutes, per_iteration, refit_per_frame * len(load_dataset(data, truth=False).meta.train))
+            tcfg, how = fitted_schedule(base, minutes, per_iteration, refit_per_frame * len(read_meta(data).train))
         log(f"training {tcfg.head_iters} head + {tcfg.torso_iters} torso iterations ({how}) into {run_dir}")
         train(data, run_dir, config=tcfg, device=device, progress=progress)
     seconds["train_wall"] = time.perf_counter() - t0
