@@ -160,6 +160,18 @@ def test_phoneme_features_shape() -> None:
     np.testing.assert_allclose(np.exp(whole).sum(-1), 1.0, atol=1e-3)  # log-probabilities
 
 
+def test_logmel_and_phonemes_side_by_side_keep_both_features_aligned() -> None:
+    x = (0.05 * np.random.default_rng(1).standard_normal(int(1.7 * SR))).astype(np.float32)
+    audio = AudioTrack(x, SR)
+    both = F.extract_features(audio, F.FeatureSpec("logmel+phonemes"))
+    samples = F.resample(audio, F.MODEL_RATE)
+    # Log-mel first, then the phoneme log-probabilities, row k of each at k * 20 ms.
+    np.testing.assert_array_equal(both[:, :80], F.logmel(samples))
+    np.testing.assert_array_equal(both[:, 80:], F.phoneme_logprobs(samples))
+    windows = F.speech_windows(audio, np.arange(40) / 25, F.FeatureSpec("logmel+phonemes"))
+    assert windows.shape == (40, 16, 80 + 191) and "logmel+phonemes" in F.FEATURE_KINDS
+
+
 ESPEAK = shutil.which("espeak-ng")
 
 

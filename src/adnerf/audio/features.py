@@ -7,6 +7,9 @@ each video frame. The extractors here produce features at 50 Hz too:
   it works offline) gives 191 IPA log-probabilities per 20 ms, the same rate and role as
   DeepSpeech's 29 character logits.
 * ``logmel``: an 80-band log-mel filterbank (25 ms windows, 20 ms hop); no model at all.
+* ``logmel+phonemes``: both, side by side (80 + 191 values a feature): the spectrum's loudness and
+  formants with the recogniser's phoneme evidence (``docs/decisions.md``, *Phoneme evidence beside
+  the log-mel*).
 * ``wav2vec2``: hidden states of a wav2vec2 / HuBERT model from a *local* directory (optional
   extra ``adnerf[wav2vec2]``; nothing is downloaded).
 * ``npy``: precomputed windows, e.g. AD-NeRF's ``aud.npy`` ``(N, 16, 29)``.
@@ -65,7 +68,7 @@ class FeatureError(RuntimeError):
 
 
 #: The extractors adnerf computes itself (datasets may also carry imported ``"deepspeech"`` windows).
-FEATURE_KINDS = ("phonemes", "logmel", "wav2vec2")
+FEATURE_KINDS = ("phonemes", "logmel", "logmel+phonemes", "wav2vec2")
 
 
 @dataclass(frozen=True)
@@ -73,13 +76,14 @@ class FeatureSpec:
     """Which extractor and its settings (part of the cache key).
 
     Attributes:
-        kind: ``"phonemes"``, ``"logmel"`` or ``"wav2vec2"`` (any wav2vec2 / HuBERT model that
+        kind: ``"phonemes"``, ``"logmel"``, ``"logmel+phonemes"`` (the two concatenated, log-mel
+            first) or ``"wav2vec2"`` (any wav2vec2 / HuBERT model that
             ``transformers.AutoModel`` loads from ``model_dir``).
         n_mels: Mel bands of ``logmel``.
         model_dir: Local model directory of ``wav2vec2`` (never downloaded).
     """
 
-    kind: Literal["phonemes", "logmel", "wav2vec2"] = "phonemes"
+    kind: Literal["phonemes", "logmel", "logmel+phonemes", "wav2vec2"] = "phonemes"
     n_mels: int = 80
     model_dir: str | None = None
 
@@ -259,9 +263,11 @@ def extract_features(audio: AudioTrack, spec: FeatureSpec = FeatureSpec(), progr
         return out
     if spec.kind == "phonemes":
         return phoneme_logprobs(samples, progress=progress)
+    if spec.kind == "logmel+phonemes":  # both have len // HOP + 1 features centred at k * 20 ms
+        return np.concatenate([logmel(samples, spec.n_mels), phoneme_logprobs(samples, progress=progress)], axis=1)
     if spec.kind == "wav2vec2":
         return hidden_states(samples, spec.model_dir or "", progress=progress)
-    raise ValueError(f"unknown feature kind {spec.kind!r}; choose phonemes, logmel or wav2vec2")
+    raise ValueError(f"unknown feature kind {spec.kind!r}; choose one of {', '.join(FEATURE_KINDS)}")
 
 
 def frame_windows(features: np.ndarray, frame_times: np.ndarray, *, feature_start: float = 0.0, rate: float = FEATURE_RATE, window: int = WINDOW) -> np.ndarray:

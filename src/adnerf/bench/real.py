@@ -249,7 +249,7 @@ def bench_real(
         device: ``"cpu"`` or ``"cuda"``.
         cut: Head / torso cut of the preprocessing (``"jaw"``, or ``"neck-row"`` to compare).
         clothes: Clothes completion of the preprocessing (``"grabcut"``, or ``"none"`` to compare).
-        features: Audio features of the dataset (``"logmel"`` or ``"phonemes"``).
+        features: Audio features of the dataset (``"logmel"``, ``"phonemes"`` or ``"logmel+phonemes"``).
         test_fraction: Fraction of the clip, at its end, held out.
         focal: Focal length in pixels at ``size`` (default: preprocessing's guess).
         work: Folder for the cached video, dataset and run (``<stem>_<size>_<cut>/`` inside;

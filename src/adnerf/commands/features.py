@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..audio.features import MODEL_RATE, FeatureError, FeatureSpec, save_npy_atomic, speech_windows
+from ..audio.features import FEATURE_KINDS, MODEL_RATE, FeatureError, FeatureSpec, save_npy_atomic, speech_windows
 from ..formats.outputs import check_file_output
 from ..io import AudioTrack, MediaError, audio_span, frame_times, probe, read_audio
 from .options import CliError, add_overwrite, number, positive
@@ -21,7 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("features", help="per-frame speech feature windows (N, 16, D) of a video or audio file")
     p.add_argument("media", help="video (frames timed by its timestamps) or audio file (wav, mp3, m4a, flac, ...)")
     p.add_argument("-o", "--output", required=True, help="output .npy file")
-    p.add_argument("--kind", choices=("phonemes", "logmel", "wav2vec2"), default="phonemes", help="extractor (default: phonemes, hama's IPA log-probs)")
+    p.add_argument("--kind", choices=FEATURE_KINDS, default="phonemes", help="extractor (default: phonemes, hama's IPA log-probs)")
     p.add_argument("--model-dir", default=None, help="local wav2vec2 / HuBERT model directory for --kind wav2vec2")
     p.add_argument("--fps", type=positive, default=None, help="frame rate (> 0) for audio-only input (default 25); overrides a video's timestamps")
     p.add_argument("--start", type=number(float, 0.0), default=0.0, help="seconds from the first frame (or the audio's start) to begin at, as preprocess --start: earlier frames and sound are left out")

@@ -83,7 +83,7 @@ LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN = 0.98, 0.9
 # never moves) and 1.0 (worst 0.95) once the clothes are completed (clothes.complete_torso); on
 # the synthetic test clip the truth scores 1.0, the classical parser 0.78 without completion.
 PERSON_AT_BOTTOM_MIN = 0.8
-FEATURE_CHOICES = ("logmel", "phonemes", "none")
+FEATURE_CHOICES = ("logmel", "phonemes", "logmel+phonemes", "none")
 
 
 class PreprocessError(ValueError):
@@ -98,7 +98,8 @@ class PreprocessConfig:
         parser: Parsing backend: ``"classical"`` (no weights), ``"mediapipe"`` (opt-in install;
             :mod:`adnerf.preprocess.mediapipe_parser`) or ``"bisenet:PATH"`` (a user's
             CelebAMask-HQ BiSeNet checkpoint; :mod:`adnerf.preprocess.bisenet`).
-        features: Audio features: ``"logmel"``, ``"phonemes"`` or ``"none"`` (silent dataset).
+        features: Audio features: ``"logmel"``, ``"phonemes"``, ``"logmel+phonemes"`` (both side by
+            side; :class:`~adnerf.audio.features.FeatureSpec`) or ``"none"`` (silent dataset).
         face: Face box and landmark backend: ``"dlib"`` (bundled 68-point model),
             ``"dlib:PATH"`` (a user's 68-point dlib shape predictor) or ``"none"`` (no landmarks;
             the mouth point is then a fixed guess on the head).
