@@ -3,11 +3,16 @@ block, a mouth predictable from its audio against one that is not, and the sign 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from adnerf.audio.features import voiced_loudness
-from adnerf.evaluation.lip_signal import blocked_folds, lip_signal, ridge_fit_predict
+from adnerf.evaluation.landmark_metrics import INNER_PAIRS
+from adnerf.evaluation.lip_signal import audio_windows, blocked_folds, dataset_lip_signal, lip_signal, ridge_fit_predict
+from adnerf.formats.dataset import DatasetFolder, load_dataset
+from adnerf.synth import SynthConfig, synthesize
 
 
 def _reference_ridge(x_fit: np.ndarray, y_fit: np.ndarray, x_pred: np.ndarray, strength: float) -> np.ndarray:
@@ -90,3 +95,24 @@ def test_the_loudness_shift_is_the_mouths_delay(late: int) -> None:
     signal = lip_signal(_windows(n, rng), opening, loudness=loud)
     assert signal.loudness_offset_frames == late and signal.loudness_corr_at_offset > 0.9
     assert signal.loudness_corr < signal.loudness_corr_at_offset
+
+
+def test_a_datasets_lip_signal_from_features_computed_again(tmp_path: Path) -> None:
+    """``features=``: windows computed from the dataset's audio at the frame times ``i / fps`` are
+    the ones preprocessing stored, up to the wav file's rounding (one feature early or late
+    differs by far more), and another extractor is measured on the same frames."""
+    data = synthesize(tmp_path / "data", SynthConfig(seconds=3.0, size=32, voice="formant", seed=3))
+    stored = np.load(DatasetFolder(data).features)  # the synthetic scene stores log-mel
+    again = audio_windows(data, "logmel")
+    assert again.shape == stored.shape and np.median(np.abs(again - stored)) < 1e-3 and np.abs(again - stored).max() < 1.0
+    assert np.median(np.abs(again[1:] - stored[:-1])) > 0.1  # what a frame's offset would read
+    jaw = load_dataset(data).truth.jaw
+    landmarks = np.zeros((len(jaw), 68, 2))
+    landmarks[:, [b for _, b in INNER_PAIRS], 1] = 1.0 + 10.0 * jaw[:, None]  # the inner lips open as the jaw
+    np.save(DatasetFolder(data).landmarks, landmarks)
+    own = dataset_lip_signal(data, blocks=3, guard=2)
+    assert own.ridge_cv_corr > 0.5  # its jaw is its loudness
+    both = dataset_lip_signal(data, "logmel+phonemes", blocks=3, guard=2)
+    assert both.frames == own.frames and both.ridge_cv_corr != own.ridge_cv_corr
+    with pytest.raises(ValueError, match="features must be one of"):
+        dataset_lip_signal(data, "wav2vec2")

@@ -25,13 +25,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", help="dataset written by adnerf preprocess (needs its face landmarks)")
     p.add_argument("--blocks", type=int, default=6, help="contiguous cross-validation blocks")
     p.add_argument("--guard", type=int, default=8, help="frames left out on either side of a tested block")
+    p.add_argument("--features", choices=("logmel", "phonemes", "logmel+phonemes"), default=None, help="compute these features from the dataset's audio instead of reading its own (which extractor carries this clip's mouth, before preprocessing again)")
     add_json(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        signal = dataset_lip_signal(args.dataset, blocks=args.blocks, guard=args.guard)
+        signal = dataset_lip_signal(args.dataset, args.features, blocks=args.blocks, guard=args.guard)
     except DatasetError:  # not a dataset, no landmarks: main prints it
         raise
     except ValueError as exc:  # too few frames for the folds
@@ -40,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(doc))
         return 0
-    print(f"{args.dataset}: {doc['frames']} frames")
+    print(f"{args.dataset}: {doc['frames']} frames" + (f", {args.features} features from its audio" if args.features else ""))
     for key, text in WORDS.items():
         value = doc[key]
         text = text.format(blocks=args.blocks)

@@ -34,7 +34,7 @@ import numpy as np
 from ..ridge import blocked_cv_corr, blocked_folds, pearson, ridge_fit_predict  # the last three re-exported
 from .landmark_metrics import av_offset, mouth_opening
 
-__all__ = ["LipSignal", "blocked_folds", "dataset_lip_signal", "lip_signal", "pearson", "ridge_fit_predict"]
+__all__ = ["LipSignal", "audio_windows", "blocked_folds", "dataset_lip_signal", "lip_signal", "pearson", "ridge_fit_predict"]
 
 
 @dataclass
@@ -123,11 +123,44 @@ def lip_signal(
     return LipSignal(n, float(l_corr), l_off, float(l_at), float(tail), float(np.nanmean(per_block)), [float(c) for c in per_block])
 
 
-def dataset_lip_signal(root: str | Path, **kwargs: object) -> LipSignal:
+def audio_windows(root: str | Path, features: str) -> np.ndarray:
+    """Feature windows ``(N, 16, D)`` of a dataset's frames computed again from its ``audio.wav``
+    with another extractor, at the frame times ``i / fps`` where preprocessing placed them (its
+    audio starts with frame 0); for the dataset's own extractor they are its ``features.npy`` up to
+    the wav file's 16-bit rounding.
+
+    Args:
+        root: The dataset folder.
+        features: ``"logmel"``, ``"phonemes"`` or ``"logmel+phonemes"`` (``wav2vec2`` needs a model).
+
+    Raises:
+        ValueError: Another extractor.
+    """
+    from ..audio.features import FEATURE_KINDS, FeatureSpec, speech_windows
+    from ..formats.dataset import DatasetFolder, read_meta
+    from ..io import read_audio
+
+    kinds = [k for k in FEATURE_KINDS if k != "wav2vec2"]
+    if features not in kinds:
+        raise ValueError(f"features must be one of {', '.join(kinds)}; got {features!r}")
+    meta = read_meta(root)
+    return speech_windows(read_audio(DatasetFolder(root).audio), np.arange(meta.n_frames) / meta.fps, FeatureSpec(kind=features))  # type: ignore[arg-type]
+
+
+def dataset_lip_signal(root: str | Path, features: str | None = None, **kwargs: object) -> LipSignal:
     """:func:`lip_signal` of a dataset folder: its ``features.npy``, the opening of its
     ``landmarks.npy``, the voiced loudness of its ``audio.wav`` at the frame times, and its
     train / test split (``meta.json``). Preprocessing interpolates the landmarks of frames where
     no face was found, so every frame has an opening; a non-finite one is a ``ValueError``.
+
+    Args:
+        root: The dataset folder.
+        features: An extractor (:data:`~adnerf.audio.features.FEATURE_KINDS` but ``wav2vec2``,
+            which needs a model) whose windows are computed from ``audio.wav`` at the frame
+            times ``i / fps`` (as preprocessing placed them) instead of reading ``features.npy``:
+            which features carry this clip's mouth, without preprocessing it again. ``None``:
+            the dataset's own.
+        **kwargs: :func:`lip_signal`'s settings.
 
     Raises:
         adnerf.formats.dataset.DatasetError: Not a dataset, or no ``landmarks.npy`` (``adnerf
@@ -142,11 +175,11 @@ def dataset_lip_signal(root: str | Path, **kwargs: object) -> LipSignal:
     files = DatasetFolder(root)
     if not files.landmarks.exists():
         raise DatasetError(f"{root}: no {files.landmarks.name}; the lip signal needs the true frames' face landmarks (adnerf preprocess writes them)")
-    windows = np.load(files.features)
+    audio = read_audio(files.audio)
+    windows = np.load(files.features) if features is None else audio_windows(root, features)
     landmarks = np.load(files.landmarks)
     if landmarks.shape != (meta.n_frames, 68, 2) or windows.shape[0] != meta.n_frames:
         raise DatasetError(f"{root}: landmarks {landmarks.shape} and features {windows.shape} do not match its {meta.n_frames} frames")
-    audio = read_audio(files.audio)
     loud = voiced_loudness(np.asarray(audio.samples, np.float64), audio.sample_rate, np.arange(meta.n_frames) / meta.fps)
     split = {"train": list(meta.train), "test": list(meta.test)} if meta.train and meta.test else {}
     return lip_signal(windows, mouth_opening(landmarks), loudness=loud, **split, **kwargs)  # type: ignore[arg-type]
