@@ -136,6 +136,7 @@ def real_minute() -> list[str]:
         ("256 px, no mouth target", {**m256["row"], **before}),
         ("512 px, 45 min", m512["row"]),
         ("512 px, 45 min, pose_refit 2", m512["pose_refit"]["row"]),
+        ("512 px, 45 min, logmel+phonemes", m512["features"]["row"]),
     ]
     out = [
         "## Real footage: the 50 s clip",
@@ -146,6 +147,7 @@ def real_minute() -> list[str]:
         f"(`lip_weight` 0.01: {m256['mouth_target']['what']}).",
         f"- 512 px: `{m512['command']}` ({m512['note']}).",
         f"- 512 px, pose_refit 2: `{m512['pose_refit']['command']}` ({m512['pose_refit']['note']}).",
+        f"- 512 px, logmel+phonemes: `{m512['features']['command']}` ({m512['features']['note']}).",
         "",
         real_columns(columns, [
             ("iterations (head + torso)", iters),
@@ -154,6 +156,18 @@ def real_minute() -> list[str]:
         ]),
         "",
         "![held-out frames of the 50 s clip at 512 px: truth, render, mouths](bench/real_minute_512_sheet.png)",
+        "",
+        "The same held-out frames from the logmel+phonemes run:",
+        "",
+        f"![held-out frames of the 50 s clip at 512 px, logmel+phonemes: truth, render, mouths](bench/{Path(m512['features']['row']['sheet']).name})",
+        "",
+        f"The two feature kinds on the 10.9 s clip (`{m512['features']['clip_10s']['command']}`; the mouth target is used from a lip signal of 0.2):",
+        "",
+        table(
+            ["features", "PSNR frame / head / mouth / eyes (dB)", "LMD mouth / all / shape (px)", "correlation", "slope", "std ratio", "lip signal (cv)"],
+            [[r["features"], " / ".join(num(r[k]) for k in ("psnr", "psnr_head", "psnr_mouth", "psnr_eyes")), " / ".join(num(r[k]) for k in ("lmd_mouth_px", "lmd_all_px", "lmd_mouth_shape_px")),
+              num(r["mouth_open_corr"]), num(r["mouth_open_slope"]), num(r["mouth_open_std_ratio"]), num(r["mouth_target_signal"])] for r in m512["features"]["clip_10s"]["rows"]],
+        ),
         "",
         "The mouth target's weight (`TrainConfig.lip_weight`), the same schedule at 256 px:",
         "",
