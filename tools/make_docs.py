@@ -169,6 +169,8 @@ def real_minute() -> list[str]:
               num(r["mouth_open_corr"]), num(r["mouth_open_slope"]), num(r["mouth_open_std_ratio"]), num(r["mouth_target_signal"])] for r in m512["features"]["clip_10s"]["rows"]],
         ),
         "",
+        *variant_rows({**m512["features"]["clip_50s_256"], "rows": [r for r in m256["pose_refit"]["rows"] if r["clip"] == "50 s" and r["variant"] == "default"] + m512["features"]["clip_50s_256"]["rows"]},
+                      "The two feature kinds at equal schedules"),
         "The mouth target's weight (`TrainConfig.lip_weight`), the same schedule at 256 px:",
         "",
         table(
