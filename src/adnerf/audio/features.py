@@ -40,6 +40,7 @@ from ..atomic import atomic_path
 from ..io import AudioTrack, MediaError
 
 __all__ = [
+    "BUILTIN_KINDS",
     "FEATURE_RATE",
     "StreamingWindows",
     "FeatureError",
@@ -67,8 +68,10 @@ class FeatureError(RuntimeError):
     """A feature extractor cannot run (missing package or model); the message says what to do."""
 
 
+#: The extractors that need nothing but adnerf's dependencies (hama ships its model in its wheel).
+BUILTIN_KINDS = ("phonemes", "logmel", "logmel+phonemes")
 #: The extractors adnerf computes itself (datasets may also carry imported ``"deepspeech"`` windows).
-FEATURE_KINDS = ("phonemes", "logmel", "logmel+phonemes", "wav2vec2")
+FEATURE_KINDS = (*BUILTIN_KINDS, "wav2vec2")
 
 
 @dataclass(frozen=True)

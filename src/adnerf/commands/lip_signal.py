@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from ..audio.features import BUILTIN_KINDS
 from ..evaluation.lip_signal import dataset_lip_signal
 from ..formats.dataset import DatasetError
 from .options import CliError, add_json
@@ -25,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", help="dataset written by adnerf preprocess (needs its face landmarks)")
     p.add_argument("--blocks", type=int, default=6, help="contiguous cross-validation blocks")
     p.add_argument("--guard", type=int, default=8, help="frames left out on either side of a tested block")
-    p.add_argument("--features", choices=("logmel", "phonemes", "logmel+phonemes"), default=None, help="compute these features from the dataset's audio instead of reading its own (which extractor carries this clip's mouth, before preprocessing again)")
+    p.add_argument("--features", choices=BUILTIN_KINDS, default=None, help="compute these features from the dataset's audio instead of reading its own (which extractor carries this clip's mouth, before preprocessing again)")
     add_json(p)
     p.set_defaults(func=run)
 

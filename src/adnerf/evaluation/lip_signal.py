@@ -136,13 +136,12 @@ def audio_windows(root: str | Path, features: str) -> np.ndarray:
     Raises:
         ValueError: Another extractor.
     """
-    from ..audio.features import FEATURE_KINDS, FeatureSpec, speech_windows
+    from ..audio.features import BUILTIN_KINDS, FeatureSpec, speech_windows
     from ..formats.dataset import DatasetFolder, read_meta
     from ..io import read_audio
 
-    kinds = [k for k in FEATURE_KINDS if k != "wav2vec2"]
-    if features not in kinds:
-        raise ValueError(f"features must be one of {', '.join(kinds)}; got {features!r}")
+    if features not in BUILTIN_KINDS:
+        raise ValueError(f"features must be one of {', '.join(BUILTIN_KINDS)}; got {features!r}")
     meta = read_meta(root)
     return speech_windows(read_audio(DatasetFolder(root).audio), np.arange(meta.n_frames) / meta.fps, FeatureSpec(kind=features))  # type: ignore[arg-type]
 
@@ -155,11 +154,10 @@ def dataset_lip_signal(root: str | Path, features: str | None = None, **kwargs: 
 
     Args:
         root: The dataset folder.
-        features: An extractor (:data:`~adnerf.audio.features.FEATURE_KINDS` but ``wav2vec2``,
-            which needs a model) whose windows are computed from ``audio.wav`` at the frame
-            times ``i / fps`` (as preprocessing placed them) instead of reading ``features.npy``:
-            which features carry this clip's mouth, without preprocessing it again. ``None``:
-            the dataset's own.
+        features: An extractor of :data:`~adnerf.audio.features.BUILTIN_KINDS` whose windows
+            are computed from ``audio.wav`` at the frame times ``i / fps`` (as preprocessing
+            placed them) instead of reading ``features.npy``: which features carry this clip's
+            mouth, without preprocessing it again. ``None``: the dataset's own.
         **kwargs: :func:`lip_signal`'s settings.
 
     Raises:
