@@ -170,6 +170,10 @@ def test_logmel_and_phonemes_side_by_side_keep_both_features_aligned() -> None:
     np.testing.assert_array_equal(both[:, 80:], F.phoneme_logprobs(samples))
     windows = F.speech_windows(audio, np.arange(40) / 25, F.FeatureSpec("logmel+phonemes"))
     assert windows.shape == (40, 16, 80 + 191) and "logmel+phonemes" in F.FEATURE_KINDS
+    # The windows are the two kinds' own windows side by side (preprocessing's --features auto
+    # joins them so; rendering other speech computes the joined kind).
+    apart = [F.speech_windows(audio, np.arange(40) / 25, F.FeatureSpec(kind)) for kind in ("logmel", "phonemes")]
+    np.testing.assert_array_equal(windows, np.concatenate(apart, axis=-1))
 
 
 ESPEAK = shutil.which("espeak-ng")

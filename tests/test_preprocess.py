@@ -160,8 +160,12 @@ def test_preprocess_resumes_finished_steps(scene: Path, tmp_path: Path, monkeypa
     assert not any("done before" in step for step in seen) and {"decode", "features", "parse", "plate"} <= set(seen)
     # A changed setting re-runs its step and the ones after it, not the ones before.
     seen.clear()
-    report = preprocess_video(scene / "video.mp4", tmp_path / "again", PreprocessConfig(focal=1.33 * 96, test_fraction=0.2, face="none"), progress=lambda s, d, t: seen.append(s))
+    report = preprocess_video(scene / "video.mp4", tmp_path / "again", PreprocessConfig(focal=1.33 * 96, test_fraction=0.2, face="none", features="auto"), progress=lambda s, d, t: seen.append(s))
     assert "parse" in seen  # the first run's work folder was removed after success
+    # --features auto without landmarks: the mouth's signal is not known, so log-mel alone.
+    again = json.loads((tmp_path / "again" / "meta.json").read_text())
+    assert report["features"]["kind"] == again["feature_kind"] == "logmel" and again["feature_dim"] == 80
+    assert "no landmarks" in report["features"]["why"] and report["features"]["chosen"] == "auto"
     # Without landmarks: no landmarks.npy, and the mouth point is the fixed guess.
     assert report["face_backend"] == "none" and "face_detected" not in report
     assert not (tmp_path / "again" / "landmarks.npy").exists() and (out / "landmarks.npy").exists()

@@ -249,7 +249,9 @@ def bench_real(
         device: ``"cpu"`` or ``"cuda"``.
         cut: Head / torso cut of the preprocessing (``"jaw"``, or ``"neck-row"`` to compare).
         clothes: Clothes completion of the preprocessing (``"grabcut"``, or ``"none"`` to compare).
-        features: Audio features of the dataset (``"logmel"``, ``"phonemes"`` or ``"logmel+phonemes"``).
+        features: Audio features of the dataset (``"logmel"``, ``"phonemes"``, ``"logmel+phonemes"``
+            or ``"auto"``: :class:`~adnerf.preprocess.pipeline.PreprocessConfig`); the row's
+            ``feature_kind`` is the kind the dataset got.
         test_fraction: Fraction of the clip, at its end, held out.
         focal: Focal length in pixels at ``size`` (default: preprocessing's guess).
         work: Folder for the cached video, dataset and run (``<stem>_<size>_<cut>/`` inside;
@@ -374,6 +376,7 @@ def bench_real(
         "cut": cut,
         "clothes": clothes,
         "features": features,
+        "feature_kind": ds.meta.feature_kind,
         "held_out_frames": len(ds.meta.test),
         "train_frames": len(ds.meta.train),
         "budget_minutes": minutes,

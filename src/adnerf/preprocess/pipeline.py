@@ -58,6 +58,7 @@ from ..formats.dataset import (
 from ..formats.outputs import OutputError, check_folder_output
 from .clothes import complete_torso
 from .cuts import find_cuts
+from .feature_choice import choose_features
 from .frame_grid import nominal_rate, regular_grid
 from .framing import Framing, auto_crop, parse_crop, plan_framing
 from .stillness import moving_regions
@@ -83,7 +84,7 @@ LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN = 0.98, 0.9
 # never moves) and 1.0 (worst 0.95) once the clothes are completed (clothes.complete_torso); on
 # the synthetic test clip the truth scores 1.0, the classical parser 0.78 without completion.
 PERSON_AT_BOTTOM_MIN = 0.8
-FEATURE_CHOICES = ("logmel", "phonemes", "logmel+phonemes", "none")
+FEATURE_CHOICES = ("auto", "logmel", "phonemes", "logmel+phonemes", "none")
 
 
 class PreprocessError(ValueError):
@@ -99,7 +100,14 @@ class PreprocessConfig:
             :mod:`adnerf.preprocess.mediapipe_parser`) or ``"bisenet:PATH"`` (a user's
             CelebAMask-HQ BiSeNet checkpoint; :mod:`adnerf.preprocess.bisenet`).
         features: Audio features: ``"logmel"``, ``"phonemes"``, ``"logmel+phonemes"`` (both side by
-            side; :class:`~adnerf.audio.features.FeatureSpec`) or ``"none"`` (silent dataset).
+            side; :class:`~adnerf.audio.features.FeatureSpec`), ``"auto"`` or ``"none"`` (silent
+            dataset). ``"auto"`` measures how well the log-mel windows predict the training
+            frames' mouth opening (:func:`adnerf.model.mouth_target.opening_signal`) and adds the
+            phonemes beside them (``"logmel+phonemes"``) from ``auto_min_signal`` on, else keeps
+            ``"logmel"`` (also without landmarks); the dataset records the kind it got
+            (``meta.json`` ``feature_kind``) and the report why (``features``).
+        auto_min_signal: Under ``features="auto"``, the cross-validated correlation of the log-mel
+            windows with the opening from which the phonemes are added.
         face: Face box and landmark backend: ``"dlib"`` (bundled 68-point model),
             ``"dlib:PATH"`` (a user's 68-point dlib shape predictor) or ``"none"`` (no landmarks;
             the mouth point is then a fixed guess on the head).
@@ -174,11 +182,14 @@ class PreprocessConfig:
     crop: str = "auto"
     size: int | None = 512
     allow_cuts: bool = False
+    auto_min_signal: float = 0.2
 
     def validate(self) -> None:
         """Raise :class:`PreprocessError` on impossible settings."""
         if self.features not in FEATURE_CHOICES:
             raise PreprocessError(f"--features must be one of {', '.join(FEATURE_CHOICES)}; got {self.features!r}")
+        if not -1 <= self.auto_min_signal <= 1:
+            raise PreprocessError(f"auto_min_signal is a correlation, in [-1, 1]; got {self.auto_min_signal}")
         if self.flow not in ("dis", "deepflow"):
             raise PreprocessError(f"--flow must be dis or deepflow; got {self.flow!r}")
         if self.parser not in ("classical", "mediapipe") and not self.parser.startswith("bisenet:"):
@@ -507,6 +518,10 @@ def _step_features(ctx: StepContext) -> dict:
     times = work.load("times")
     if config.features == "none":
         work.save("features", np.zeros((len(times), 16, 1), np.float32))
+    elif config.features == "auto":  # both; the write step, with the landmarks, keeps what the clip carries
+        audio = read_audio(work.audio)
+        work.save("features", speech_windows(audio, times, FeatureSpec(kind="logmel")))
+        work.save("phonemes", speech_windows(audio, times, FeatureSpec(kind="phonemes")))
     else:
         audio = read_audio(work.audio)
         work.save("features", speech_windows(audio, times, FeatureSpec(kind=config.features)))
@@ -750,7 +765,7 @@ PIPELINE = (
     Step("plate", (), _step_plate),
 )
 STEPS = tuple(step.name for step in PIPELINE) + ("write",)
-_STEP_KEYS = {**{step.name: step.keys for step in PIPELINE}, "write": ("test_fraction",)}
+_STEP_KEYS = {**{step.name: step.keys for step in PIPELINE}, "write": ("test_fraction", "auto_min_signal")}
 
 
 def scene_bounds(labels: np.ndarray, poses: np.ndarray, K: tuple[float, float, float, float], head_width: float, mouth_pixels: np.ndarray | None = None, eye_pixels: np.ndarray | None = None) -> dict:
@@ -873,23 +888,32 @@ def _torso_motion(frames: np.ndarray, labels: np.ndarray, report: dict, bar: Bar
     return torso.maps
 
 
+def _chosen_features(work: _Work, config: PreprocessConfig, landmarks: np.ndarray | None, train: list[int]) -> tuple[np.ndarray, str, dict]:
+    """The dataset's feature windows ``(N, 16, D)``, their kind and the report's ``features``
+    entry (under ``features="auto"``: :func:`.feature_choice.choose_features`)."""
+    if config.features != "auto":
+        return work.load("features"), config.features, {"kind": config.features}
+    choice = choose_features(work.load("features"), work.load("phonemes"), landmarks, train, config.auto_min_signal)
+    return choice.windows, choice.kind, {**choice.doc, "chosen": "auto"}
+
+
 def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, docs: dict, bar: Bar, overwrite: bool) -> dict:
     t0 = time.perf_counter()
     info = work.load_json("decode")
     frames, labels, poses = work.load("frames"), _labels(work), work.load("poses")
-    features = work.load("features")
     n = len(frames)
     K = _intrinsics(config, info)
     landmarks = _landmarks(work, config)
     b = scene_bounds(labels, poses, K, config.head_width, None if landmarks is None else mouth_centres(landmarks), None if landmarks is None else eye_centres_px(landmarks))
     train, test = tail_split(n, config.test_fraction)
+    features, feature_kind, feature_doc = _chosen_features(work, config, landmarks, train)
     meta = SceneMeta(
         fps=float(info["fps"]),
         width=int(info["width"]),
         height=int(info["height"]),
         intrinsics=K,
         **b,
-        feature_kind=config.features,
+        feature_kind=feature_kind,
         feature_dim=int(features.shape[-1]),
         n_frames=n,
         train=train,
@@ -910,6 +934,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         "fps": info["fps"],
         "seconds": info["seconds"],
         "config": asdict(config),
+        "features": feature_doc,
         "decode": docs.get("decode", {}),
         **{f"parse_{k}": v for k, v in docs["parse"].items()},
         **{f"face_{k}": v for k, v in docs["face"].items()},
