@@ -201,7 +201,8 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     for key in ("psnr", "ssim", "psnr_head", "ssim_head", "psnr_mouth", "lpips"):
         assert isinstance(row[key], (int, float)) and math.isfinite(row[key]), key
     assert row["held_out_frames"] == row["frames"] == 11 and row["clip_frames"] == 75 and row["train_frames"] == 64
-    assert row["landmarks_found_true"] == 11 and row["features"] == "logmel"
+    assert row["landmarks_found_true"] == 11 and row["features"] == "auto"
+    assert row["feature_kind"] == json.loads((Path(row["dataset"]) / "meta.json").read_text())["feature_kind"]  # what auto chose
     # SyncNet scores the 11 held-out frames' 6 windows, the renders and the true frames alike.
     assert row["syncnet"] == "scored" and row["syncnet_windows"] == 6 and len(row["syncnet_curve"]) == 31
     assert row["lse_d"] > 0 and row["lse_d_true"] > 0 and row["lse_d"] != row["lse_d_true"]

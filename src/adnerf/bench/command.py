@@ -111,7 +111,7 @@ def _register_real(sub: argparse._SubParsersAction) -> None:
     add_device(p)
     p.add_argument("--cut", choices=("jaw", "neck-row"), default="jaw", help="head / torso cut of the preprocessing (neck-row: the earlier cut, to compare)")
     p.add_argument("--clothes", choices=("grabcut", "none"), default="grabcut", help="clothes completion of the preprocessing (none: as before it existed, to compare)")
-    p.add_argument("--features", choices=("auto", *BUILTIN_KINDS), default="logmel", help="audio features of the dataset (auto: preprocessing's choice, see adnerf preprocess --help)")
+    p.add_argument("--features", choices=("auto", *BUILTIN_KINDS), default="auto", help="audio features of the dataset (auto: preprocessing's choice, see adnerf preprocess --help)")
     p.add_argument("--test-fraction", type=number(float, 0.0, 0.5, open_lo=True), default=0.15, help="fraction of the clip held out at its end, in (0, 0.5]")
     p.add_argument("--focal", type=positive, default=None, help="focal length in pixels at --size (default: preprocessing's guess)")
     p.add_argument("--work", default="adnerf_bench_real", help="folder for the cached video, dataset and run")

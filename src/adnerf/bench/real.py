@@ -225,7 +225,7 @@ def bench_real(
     device: str = "cpu",
     cut: str = "jaw",
     clothes: str = "grabcut",
-    features: str = "logmel",
+    features: str = "auto",
     test_fraction: float = 0.15,
     focal: float | None = None,
     work: str | Path = "adnerf_bench_real",
@@ -249,13 +249,14 @@ def bench_real(
         device: ``"cpu"`` or ``"cuda"``.
         cut: Head / torso cut of the preprocessing (``"jaw"``, or ``"neck-row"`` to compare).
         clothes: Clothes completion of the preprocessing (``"grabcut"``, or ``"none"`` to compare).
-        features: Audio features of the dataset (``"logmel"``, ``"phonemes"``, ``"logmel+phonemes"``
-            or ``"auto"``: :class:`~adnerf.preprocess.pipeline.PreprocessConfig`); the row's
+        features: Audio features of the dataset (``"auto"``, ``"logmel"``, ``"phonemes"`` or
+            ``"logmel+phonemes"``: :class:`~adnerf.preprocess.pipeline.PreprocessConfig`); the row's
             ``feature_kind`` is the kind the dataset got.
         test_fraction: Fraction of the clip, at its end, held out.
         focal: Focal length in pixels at ``size`` (default: preprocessing's guess).
         work: Folder for the cached video, dataset and run (``<stem>_<size>_<cut>/`` inside;
-            ``_noclothes`` appended without the clothes completion).
+            ``_<features>`` appended for features other than ``"auto"``, ``_noclothes`` without
+            the clothes completion).
         lpips_backbone: AlexNet weights for LPIPS (default: the torch hub cache's, if there).
         lpips_linear: LPIPS linear layers (default: the installed ``lpips`` package's, if any).
         syncnet: SyncNet checkpoint for LSE-D / LSE-C (:mod:`adnerf.evaluation.syncnet`; none: "no weights").
@@ -292,7 +293,7 @@ def bench_real(
         if not Path(path).is_file():
             raise ValueError(f"{path}: no such audio file to drive the run with")
     seconds: dict[str, float] = {}
-    folder = Path(work) / (f"{Path(video).stem}_{size or 'native'}_{cut}" + ("" if features == "logmel" else f"_{features}") + ("" if clothes == "grabcut" else "_noclothes"))
+    folder = Path(work) / (f"{Path(video).stem}_{size or 'native'}_{cut}" + ("" if features == "auto" else f"_{features}") + ("" if clothes == "grabcut" else "_noclothes"))
     folder.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()

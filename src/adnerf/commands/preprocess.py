@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("video", help="video file with an audio track")
     p.add_argument("-o", "--output", required=True, help="dataset folder to create")
     p.add_argument("--parser", default="classical", help="face parser: classical (default, needs no weights), mediapipe (opt-in install, see docs/preprocessing.md) or bisenet:CHECKPOINT (your 19-class face-parsing BiSeNet .pth, e.g. the 79999_iter.pth AD-NeRF uses)")
-    p.add_argument("--features", choices=FEATURE_CHOICES, default="logmel", help="audio features (logmel+phonemes: both side by side; auto: log-mel, with the phonemes beside it where the log-mel predicts the training frames' mouth opening, needs landmarks; none: silent dataset, allowed without audio)")
+    p.add_argument("--features", choices=FEATURE_CHOICES, default="auto", help="audio features (logmel+phonemes: both side by side; auto: log-mel, with the phonemes beside it where the log-mel predicts the training frames' mouth opening, needs landmarks; none: silent dataset, allowed without audio)")
     p.add_argument("--face", default="dlib", help="face box and 68 landmarks: dlib (default; HOG detector and the 68-point model of the face-recognition-models package), dlib:PREDICTOR.dat (your own 68-point model) or none")
     p.add_argument("--flow", choices=("dis", "deepflow"), default="dis", help="dense optical flow for head tracking")
     p.add_argument("--cut", choices=("jaw", "neck-row"), default="jaw", help="where head meets torso for the classical parser: the landmarks' jaw line, or the silhouette's narrowest row (the earlier cut, for comparisons)")

@@ -76,7 +76,8 @@ class Streamer:
         if meta["feature_kind"] != "logmel":
             raise RenderError(
                 f"this run reads {meta['feature_kind']!r} features; streaming computes log-mel features as the audio arrives "
-                "(the phoneme and wav2vec2 extractors read seconds of context on either side): render it with adnerf render"
+                "(the phoneme and wav2vec2 extractors read seconds of context on either side): render it with adnerf render, "
+                "or train the run to stream on a dataset preprocessed with --features logmel"
             )
         if blink not in ("auto", "none"):
             raise RenderError(f"a stream blinks 'auto' or 'none'; got {blink!r}")

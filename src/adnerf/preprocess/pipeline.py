@@ -99,9 +99,9 @@ class PreprocessConfig:
         parser: Parsing backend: ``"classical"`` (no weights), ``"mediapipe"`` (opt-in install;
             :mod:`adnerf.preprocess.mediapipe_parser`) or ``"bisenet:PATH"`` (a user's
             CelebAMask-HQ BiSeNet checkpoint; :mod:`adnerf.preprocess.bisenet`).
-        features: Audio features: ``"logmel"``, ``"phonemes"``, ``"logmel+phonemes"`` (both side by
-            side; :class:`~adnerf.audio.features.FeatureSpec`), ``"auto"`` or ``"none"`` (silent
-            dataset). ``"auto"`` measures how well the log-mel windows predict the training
+        features: Audio features: ``"auto"`` (default), ``"logmel"``, ``"phonemes"``,
+            ``"logmel+phonemes"`` (both side by side; :class:`~adnerf.audio.features.FeatureSpec`)
+            or ``"none"`` (silent dataset). ``"auto"`` measures how well the log-mel windows predict the training
             frames' mouth opening (:func:`adnerf.model.mouth_target.opening_signal`) and adds the
             phonemes beside them (``"logmel+phonemes"``) from ``auto_min_signal`` on, else keeps
             ``"logmel"`` (also without landmarks); the dataset records the kind it got
@@ -159,7 +159,7 @@ class PreprocessConfig:
     """
 
     parser: str = "classical"
-    features: str = "logmel"
+    features: str = "auto"
     face: str = "dlib"
     flow: str = "dis"
     cut: str = "jaw"
