@@ -921,10 +921,7 @@ def _step_write(video: Path, out: Path, work: _Work, config: PreprocessConfig, d
         source=f"adnerf preprocess {video.name}: parser={config.parser} face={config.face} flow={config.flow} focal={K[0]:g}",
         framing=info["framing"] if "framing" in info and (Framing.from_dict(info["framing"]).cropped or config.start or config.end is not None) else None,
     )
-    if info["audio"]:
-        audio = read_audio(work.audio)
-    else:
-        audio = AudioTrack(np.zeros(int(16000 * info["seconds"]), np.float32), 16000, 0.0)
+    audio = read_audio(work.audio) if info["audio"] else AudioTrack(np.zeros(int(16000 * info["seconds"]), np.float32), 16000, 0.0)
     plate = cv2.cvtColor(cv2.imread(str(work.plate)), cv2.COLOR_BGR2RGB)
     report = {
         "video": str(video),
