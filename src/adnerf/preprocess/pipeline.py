@@ -518,13 +518,12 @@ def _step_features(ctx: StepContext) -> dict:
     times = work.load("times")
     if config.features == "none":
         work.save("features", np.zeros((len(times), 16, 1), np.float32))
-    elif config.features == "auto":  # both; the write step, with the landmarks, keeps what the clip carries
-        audio = read_audio(work.audio)
-        work.save("features", speech_windows(audio, times, FeatureSpec(kind="logmel")))
-        work.save("phonemes", speech_windows(audio, times, FeatureSpec(kind="phonemes")))
     else:
         audio = read_audio(work.audio)
-        work.save("features", speech_windows(audio, times, FeatureSpec(kind=config.features)))
+        # auto: both; the write step, with the landmarks, keeps what the clip carries
+        work.save("features", speech_windows(audio, times, FeatureSpec(kind="logmel" if config.features == "auto" else config.features)))
+        if config.features == "auto":
+            work.save("phonemes", speech_windows(audio, times, FeatureSpec(kind="phonemes")))
     bar("features", 1, 1)
     return {}
 
