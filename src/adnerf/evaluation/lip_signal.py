@@ -28,11 +28,16 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..ridge import blocked_cv_corr, blocked_folds, pearson, ridge_fit_predict  # the last three re-exported
 from .landmark_metrics import av_offset, mouth_opening
+
+if TYPE_CHECKING:
+    from ..formats.dataset import SceneMeta
+    from ..io import AudioTrack
 
 __all__ = ["LipSignal", "audio_windows", "blocked_folds", "dataset_lip_signal", "lip_signal", "pearson", "ridge_fit_predict"]
 
@@ -136,14 +141,19 @@ def audio_windows(root: str | Path, features: str) -> np.ndarray:
     Raises:
         ValueError: Another extractor.
     """
-    from ..audio.features import BUILTIN_KINDS, FeatureSpec, speech_windows
     from ..formats.dataset import DatasetFolder, read_meta
     from ..io import read_audio
 
+    return _windows_at_frames(read_audio(DatasetFolder(root).audio), read_meta(root), features)
+
+
+def _windows_at_frames(audio: AudioTrack, meta: SceneMeta, features: str) -> np.ndarray:
+    """:func:`audio_windows` of a dataset's audio and meta, already read."""
+    from ..audio.features import BUILTIN_KINDS, FeatureSpec, speech_windows
+
     if features not in BUILTIN_KINDS:
         raise ValueError(f"features must be one of {', '.join(BUILTIN_KINDS)}; got {features!r}")
-    meta = read_meta(root)
-    return speech_windows(read_audio(DatasetFolder(root).audio), np.arange(meta.n_frames) / meta.fps, FeatureSpec(kind=features))  # type: ignore[arg-type]
+    return speech_windows(audio, np.arange(meta.n_frames) / meta.fps, FeatureSpec(kind=features))  # type: ignore[arg-type]
 
 
 def dataset_lip_signal(root: str | Path, features: str | None = None, **kwargs: object) -> LipSignal:
@@ -174,7 +184,7 @@ def dataset_lip_signal(root: str | Path, features: str | None = None, **kwargs: 
     if not files.landmarks.exists():
         raise DatasetError(f"{root}: no {files.landmarks.name}; the lip signal needs the true frames' face landmarks (adnerf preprocess writes them)")
     audio = read_audio(files.audio)
-    windows = np.load(files.features) if features is None else audio_windows(root, features)
+    windows = np.load(files.features) if features is None else _windows_at_frames(audio, meta, features)
     landmarks = np.load(files.landmarks)
     if landmarks.shape != (meta.n_frames, 68, 2) or windows.shape[0] != meta.n_frames:
         raise DatasetError(f"{root}: landmarks {landmarks.shape} and features {windows.shape} do not match its {meta.n_frames} frames")
