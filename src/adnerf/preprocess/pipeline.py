@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from ..atomic import atomic_path
+from ..audio.features import BUILTIN_KINDS
 from ..io import AudioTrack, MediaError, read_audio, read_video
 from ..lock import writes_folder
 from ..formats.dataset import (
@@ -84,7 +85,8 @@ LIP_IN_HEAD_MIN, MIDPOINT_IN_HEAD_MIN = 0.98, 0.9
 # never moves) and 1.0 (worst 0.95) once the clothes are completed (clothes.complete_torso); on
 # the synthetic test clip the truth scores 1.0, the classical parser 0.78 without completion.
 PERSON_AT_BOTTOM_MIN = 0.8
-FEATURE_CHOICES = ("auto", "logmel", "phonemes", "logmel+phonemes", "none")
+#: What ``--features`` accepts: auto (the clip chooses), the built-in extractors, none (silent).
+FEATURE_CHOICES = ("auto", *BUILTIN_KINDS, "none")
 
 
 class PreprocessError(ValueError):
