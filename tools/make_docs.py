@@ -140,6 +140,8 @@ def real_minute() -> list[str]:
         ("512 px, log-mel, the next column's schedule", same["row"]),
         ("512 px, 45 min, default (auto: logmel+phonemes)", m512["features"]["row"]),
         ("512 px, default, seed 1", m512["features"]["seed1"]["row"]),
+        ("512 px, default with mouth_rays 0.5, seed 0", m512["mouth_rays"]["seed0"]["row"]),
+        ("512 px, default with mouth_rays 0.5, seed 1", m512["mouth_rays"]["seed1"]["row"]),
     ]
     out = [
         "## Real footage: the 50 s clip",
@@ -158,6 +160,7 @@ def real_minute() -> list[str]:
         f"- 512 px, default: `{m512['features']['command']}` ({m512['features']['note']}; preprocessing's default, `--features auto`, "
         "chooses the same features for this clip: its windows equal this dataset's byte for byte).",
         f"- 512 px, default, seed 1: `{m512['features']['seed1']['command']}` ({m512['features']['seed1']['note']}).",
+        f"- 512 px, default with mouth_rays 0.5, {m512['mouth_rays']['what']}: `{m512['mouth_rays']['command']}` ({m512['mouth_rays']['note']}).",
         "",
         real_columns(columns, [
             ("iterations (head + torso)", iters),
