@@ -209,13 +209,14 @@ def test_bench_real_runs_end_to_end_and_reuses_its_work(clip: Path, tmp_path: Pa
     # Three seconds of training render no face dlib finds: then there is no LMD, and it says why.
     assert ("lmd_mouth_px" in row) == (row["landmarks_found_render"] >= 0.5 * 11)
     assert row["layers"]["lip_in_head"] >= 0.98 and Path(row["sheet"]).stat().st_size > 0
+    assert Path(row["sheet"]).parent == Path(row["run"])  # the run's own: another seed's run does not overwrite it
     lips = row["lip_signal"]  # the clip's own ceiling, from the dataset's landmarks and audio
     assert lips["frames"] == 75 and len(lips["ridge_cv_blocks"]) == 6 and -1 <= lips["ridge_cv_corr"] <= 1
     assert set(row["seconds"]) == {"video", "preprocess", "train_wall", "evaluate", "sheet", "sweep"}
     # The pose sweep: two held-out frames at each yaw, the first and the last, with its sheet.
     sweep = row["pose_sweep"]
     assert [r["yaw"] for r in sweep["rows"]] == [0.0, 5.0, 10.0, 15.0, 20.0] and sweep["frames"] == [64, 74]
-    assert Path(sweep["sheet"]).stat().st_size > 0 and set(row["pose_range"]) == {"yaw", "pitch", "roll"}
+    assert Path(sweep["sheet"]).stat().st_size > 0 and Path(sweep["sheet"]).parent == Path(row["run"]) and set(row["pose_range"]) == {"yaw", "pitch", "roll"}
     plot_mouth_opening(row, tmp_path / "mouth.png")
     assert (tmp_path / "mouth.png").stat().st_size > 0
     # Again: the dataset and the run are reused, and without LPIPS weights the column says so.

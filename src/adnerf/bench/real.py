@@ -23,7 +23,8 @@ Steps, each timed (the times go into the result):
    reference: over every frame with preprocessing's landmarks, and over the held-out frames for
    the true frames and for the render.
 
-The result is one dict (``--json`` prints it as one line) and ``WORK/bench_real.png``. Besides the
+The result is one dict (``--json`` prints it as one line) and, in the run's folder, ``bench_real.png``
+(and ``bench_real_sweep.png``), so that runs of other seeds or variants on the clip keep their own. Besides the
 metrics it holds the cost of the run: the seconds of each step above, the training seconds per
 step of each stage, the bytes a frame of the clip holds in memory while training (its uint8
 frame and labels) and the process's peak resident memory.
@@ -334,10 +335,10 @@ def bench_real(
     metrics, rendered = evaluate_run(run, ds, "test", landmarks=True, lpips=model, syncnet=sync)
     seconds["evaluate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sheet = _sheet(folder / "bench_real.png", ds, list(ds.meta.test), rendered.frames)
+    sheet = _sheet(run_dir / "bench_real.png", ds, list(ds.meta.test), rendered.frames)
     seconds["sheet"] = time.perf_counter() - t0
 
-    swept = _sweep(run, ds, folder / "bench_real_sweep.png", sweep, log) if sweep else None
+    swept = _sweep(run, ds, run_dir / "bench_real_sweep.png", sweep, log) if sweep else None
     if swept is not None:
         seconds["sweep"] = swept.pop("seconds")
 
