@@ -142,6 +142,8 @@ def real_minute() -> list[str]:
         ("512 px, default, seed 1", m512["features"]["seed1"]["row"]),
         ("512 px, default with mouth_rays 0.5, seed 0", m512["mouth_rays"]["seed0"]["row"]),
         ("512 px, default with mouth_rays 0.5, seed 1", m512["mouth_rays"]["seed1"]["row"]),
+        ("512 px, default with mouth_input 1, seed 0", m512["mouth_input"]["seed0"]["row"]),
+        ("512 px, default with mouth_input 1, seed 1", m512["mouth_input"]["seed1"]["row"]),
     ]
     out = [
         "## Real footage: the 50 s clip",
@@ -161,6 +163,7 @@ def real_minute() -> list[str]:
         "chooses the same features for this clip: its windows equal this dataset's byte for byte).",
         f"- 512 px, default, seed 1: `{m512['features']['seed1']['command']}` ({m512['features']['seed1']['note']}).",
         f"- 512 px, default with mouth_rays 0.5, {m512['mouth_rays']['what']}: `{m512['mouth_rays']['command']}` ({m512['mouth_rays']['note']}).",
+        f"- 512 px, default with mouth_input 1, {m512['mouth_input']['what']}: `{m512['mouth_input']['command']}` ({m512['mouth_input']['note']}).",
         "",
         real_columns(columns, [
             ("iterations (head + torso)", iters),
