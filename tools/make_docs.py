@@ -132,6 +132,7 @@ def real_minute() -> list[str]:
     m256, m512 = load("real_minute.json"), load("real_minute_512.json")
     default, before = default_256(m256), lip_weight_row(m256, 0.0)
     same = m512["features"]["logmel_same_schedule"]
+    variants = (("mouth_rays", "mouth_rays 0.5"), ("mouth_input", "mouth_input 1"))  # two seeds each, on the default's schedule
     columns = [
         ("256 px, log-mel", {**m256["row"], **default}),
         ("256 px, log-mel, no mouth target", {**m256["row"], **before}),
@@ -140,10 +141,7 @@ def real_minute() -> list[str]:
         ("512 px, log-mel, the next column's schedule", same["row"]),
         ("512 px, 45 min, default (auto: logmel+phonemes)", m512["features"]["row"]),
         ("512 px, default, seed 1", m512["features"]["seed1"]["row"]),
-        ("512 px, default with mouth_rays 0.5, seed 0", m512["mouth_rays"]["seed0"]["row"]),
-        ("512 px, default with mouth_rays 0.5, seed 1", m512["mouth_rays"]["seed1"]["row"]),
-        ("512 px, default with mouth_input 1, seed 0", m512["mouth_input"]["seed0"]["row"]),
-        ("512 px, default with mouth_input 1, seed 1", m512["mouth_input"]["seed1"]["row"]),
+        *((f"512 px, default with {name}, seed {n}", m512[key][f"seed{n}"]["row"]) for key, name in variants for n in (0, 1)),
     ]
     out = [
         "## Real footage: the 50 s clip",
@@ -162,8 +160,7 @@ def real_minute() -> list[str]:
         f"- 512 px, default: `{m512['features']['command']}` ({m512['features']['note']}; preprocessing's default, `--features auto`, "
         "chooses the same features for this clip: its windows equal this dataset's byte for byte).",
         f"- 512 px, default, seed 1: `{m512['features']['seed1']['command']}` ({m512['features']['seed1']['note']}).",
-        f"- 512 px, default with mouth_rays 0.5, {m512['mouth_rays']['what']}: `{m512['mouth_rays']['command']}` ({m512['mouth_rays']['note']}).",
-        f"- 512 px, default with mouth_input 1, {m512['mouth_input']['what']}: `{m512['mouth_input']['command']}` ({m512['mouth_input']['note']}).",
+        *(f"- 512 px, default with {name}, {m512[key]['what']}: `{m512[key]['command']}` ({m512[key]['note']})." for key, name in variants),
         "",
         real_columns(columns, [
             ("iterations (head + torso)", iters),
