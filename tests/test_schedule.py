@@ -14,7 +14,7 @@ import torch
 from adnerf.model import train as train_module
 from adnerf.formats.dataset import LABEL_HEAD, load_dataset
 from adnerf.model.layers import RadianceLayer
-from adnerf.model.talking_head import TalkingHead, model_config
+from adnerf.model.talking_head import MOUTH_PLANES_BOX, MOUTH_PLANES_RESOLUTION, TalkingHead, model_config
 from adnerf.model.train import TrainConfig, Trainer, train
 from adnerf.synth import SynthConfig, synthesize
 
@@ -135,7 +135,7 @@ def test_sample_counts_head_grid_width_and_gate_from_the_schedule_are_trained_st
         return real_init(self, bounds, n_coarse, n_fine, *args, **kw)
 
     monkeypatch.setattr(VolumeRenderer, "__init__", spy)
-    cfg = TrainConfig(head_iters=2, torso_iters=2, rays=32, log_every=1, head_samples=6, torso_samples=4, head_grid=32, head_width=48, head_gate=4)
+    cfg = TrainConfig(head_iters=2, torso_iters=2, rays=32, log_every=1, head_samples=6, torso_samples=4, head_grid=32, head_width=48, head_gate=4, head_planes=2)
     train(data, tmp_path / "run", config=cfg, progress=False)
     assert set(made) == {(6, 6), (4, 4)}  # each layer trained with its own count, coarse and fine
     run = load_run(tmp_path / "run")
@@ -147,8 +147,16 @@ def test_sample_counts_head_grid_width_and_gate_from_the_schedule_are_trained_st
     gates = {name: (layer.coarse.config.cond_gate, layer.fine.config.cond_gate) for name, layer in run.model.layers.items()}
     assert gates == {"head": (4, 4), "torso": (0, 0)}  # both head fields gate the code; the torso does not
     assert run.model.layers["head"].fine.gate is not None and run.model.layers["torso"].fine.gate is None
+    # The residual planes: the head's fine field alone, about the dataset's mouth, and trained.
+    head = run.model.layers["head"]
+    assert head.coarse.cond_residual is None and run.model.layers["torso"].fine.cond_residual is None
+    assert head.fine.cond_residual is not None and tuple(head.fine.cond_residual.shape) == (2, 3, 8, MOUTH_PLANES_RESOLUTION, MOUTH_PLANES_RESOLUTION)
+    meta = load_dataset(data, truth=False).meta
+    assert head.fine.config.cond_planes_min == pytest.approx([m + d for m, d in zip(meta.mouth, MOUTH_PLANES_BOX[0])])
+    assert head.fine.config.cond_planes_max == pytest.approx([m + d for m, d in zip(meta.mouth, MOUTH_PLANES_BOX[1])])
+    assert float(head.fine.cond_residual.detach().abs().max()) > 0  # zero at the start: two steps moved them
     default = model_config(load_dataset(data, truth=False).meta)
     assert (default.head_samples, default.torso_samples, default.head_fine.grid_max_resolution, default.head_fine.width) == ((16, 16), (16, 16), 256, 64)
-    for bad, message in (({"head_samples": 1}, "head_samples"), ({"head_grid": 8}, "head_grid"), ({"head_grid": 64, "preset": "paper"}, "head_grid"), ({"head_width": -1}, "head_width"), ({"head_width": 128, "preset": "paper"}, "head_width"), ({"head_gate": -1}, "head_gate")):
+    for bad, message in (({"head_samples": 1}, "head_samples"), ({"head_grid": 8}, "head_grid"), ({"head_grid": 64, "preset": "paper"}, "head_grid"), ({"head_width": -1}, "head_width"), ({"head_width": 128, "preset": "paper"}, "head_width"), ({"head_gate": -1}, "head_gate"), ({"head_planes": -1}, "head_planes"), ({"head_planes": 2, "preset": "paper"}, "head_planes")):
         with pytest.raises(ValueError, match=message):
             TrainConfig(**bad).validate()

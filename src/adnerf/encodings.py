@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["Encoding", "PositionalEncoding", "TriPlaneEncoding"]
+__all__ = ["Encoding", "PositionalEncoding", "TriPlaneEncoding", "plane_grid", "sample_planes"]
 
 
 class Encoding(nn.Module):
@@ -60,6 +60,19 @@ class PositionalEncoding(Encoding):
             # NeRF ordering: for each frequency, sin then cos of all D components.
             parts.append(torch.stack([torch.sin(scaled), torch.cos(scaled)], dim=-2).reshape(*x.shape[:-1], -1))
         return torch.cat(parts, dim=-1)
+
+
+def plane_grid(p: Tensor) -> Tensor:
+    """Points ``(N, 3)`` in ``[-1, 1]^3`` as ``grid_sample`` coordinates of the xy, xz and yz
+    planes, ``(3, 1, N, 2)`` (``(x, y)`` = (width, height) order)."""
+    return torch.stack([p[:, [0, 1]], p[:, [0, 2]], p[:, [1, 2]]], dim=0)[:, None]
+
+
+def sample_planes(planes: Tensor, grid: Tensor, padding: str) -> Tensor:
+    """Bilinear features of three planes ``(3, C, R, R)`` at :func:`plane_grid` coordinates
+    ``(3, 1, N, 2)``: ``(3, C, 1, N)``, feature-major. ``padding``: ``"border"`` (points outside
+    read the edge) or ``"zeros"`` (they read zero, fading over the outermost cell)."""
+    return F.grid_sample(planes, grid, mode="bilinear", padding_mode=padding, align_corners=True)
 
 
 class TriPlaneEncoding(Encoding):
@@ -118,17 +131,12 @@ class TriPlaneEncoding(Encoding):
         """Encode points ``(..., 3)`` to features ``(..., 3 * n_levels * channels)``."""
         batch = x.shape[:-1]
         p = self.normalize(x.reshape(-1, 3))
-        # Plane coordinates (grid_sample wants (x, y) = (width, height) order): xy, xz, yz.
-        coords = torch.stack([p[:, [0, 1]], p[:, [0, 2]], p[:, [1, 2]]], dim=0)  # (3, N, 2)
-        grid = coords[:, None]  # (3, 1, N, 2)
+        grid = plane_grid(p)
         n = grid.shape[2]
         # grid_sample gives (3, C, 1, N) per level: feature-major, so the levels stack along dim 0
         # without a permute, and the (F, N) result is handed on transposed, as a view (the MLP's
         # matrix product reads transposed operands directly). Feature order: level, plane, channel.
-        feats = [
-            F.grid_sample(planes.to(x.dtype), grid, mode="bilinear", padding_mode="border", align_corners=True).reshape(3 * self.channels, n)
-            for planes in self.planes
-        ]
+        feats = [sample_planes(planes.to(x.dtype), grid, "border").reshape(3 * self.channels, n) for planes in self.planes]
         return torch.cat(feats, dim=0).t().reshape(*batch, self.out_dim)
 
     def total_variation(self) -> Tensor:

@@ -6,7 +6,11 @@ concatenated to the encoded position at the input and at the skip layers, as in 
 ``cond_gate`` the field also reads a narrow projection of the condition that each point scales by
 a gate of its own position's features (``P c * sigmoid(G e(x) + g)``), so that a condition can act
 where the field learns it should (the audio code at the mouth) rather than only as the same shift
-of every point's first layer.
+of every point's first layer. With ``cond_planes`` a tri-plane field's finest features also depend
+on the condition inside a box (the mouth's): ``K`` residual plane sets blended by a linear
+projection of the condition, ``e(x) + sum_k (W c)_k D_k(x)``, so that what a condition changes
+there (lips parting, teeth showing) is stored at the grid's resolution instead of being drawn
+out of the same features by the MLP.
 
 The field knows no space and no pose: a :class:`~adnerf.model.layers.RadianceLayer` places it
 (the head layer in the head's canonical space, the torso layer in camera space) and builds its
@@ -23,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .encodings import Encoding, PositionalEncoding, TriPlaneEncoding
+from .encodings import Encoding, PositionalEncoding, TriPlaneEncoding, plane_grid, sample_planes
 
 __all__ = ["FieldConfig", "FieldOutput", "RadianceField", "SampleRows", "fast_config", "paper_config"]
 
@@ -83,6 +87,15 @@ class FieldConfig:
             values once a ray (``P c``), scaled at each point by ``sigmoid(G e(x) + g)`` of the
             point's encoded position ``e(x)``, and read by the first layer (and the skips) beside
             the encoded position and the condition itself.
+        cond_planes: Residual plane sets ``K`` of the conditioned features (tri-plane encoding
+            only; 0: none): ``K`` sets of three planes ``(grid_channels, R, R)`` over the box
+            ``cond_planes_min`` .. ``cond_planes_max``, blended by ``W c`` (``K`` weights, a
+            linear map of the condition) and added to the finest level's features of the points
+            inside; zero outside the box (fading over its outermost cell). The planes start at
+            zero, so a new field is the unconditioned-features one.
+        cond_planes_min: Box of the residual planes (the field's space).
+        cond_planes_max: Box of the residual planes.
+        cond_planes_resolution: Cells a side ``R`` of each residual plane.
     """
 
     encoding: Literal["pe", "triplane"] = "pe"
@@ -102,6 +115,10 @@ class FieldConfig:
     grid_base_resolution: int = 16
     grid_max_resolution: int = 128
     cond_gate: int = 0
+    cond_planes: int = 0
+    cond_planes_min: tuple[float, float, float] = (-1.0, -1.0, -1.0)
+    cond_planes_max: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    cond_planes_resolution: int = 128
 
     def to_dict(self) -> dict:
         """A JSON-serialisable dict (for checkpoints)."""
@@ -114,7 +131,7 @@ class FieldConfig:
         """Inverse of :meth:`to_dict`; unknown keys are an error."""
         check_config_keys(d, FieldConfig, "field config")
         d = dict(d)
-        for key in ("skips", "aabb_min", "aabb_max"):
+        for key in ("skips", "aabb_min", "aabb_max", "cond_planes_min", "cond_planes_max"):
             if key in d:
                 d[key] = tuple(d[key])
         return FieldConfig(**d)
@@ -175,6 +192,10 @@ class RadianceField(nn.Module):
             raise ValueError("field depth and width must be >= 1")
         if config.cond_gate < 0 or (config.cond_gate and not config.cond_dim):
             raise ValueError(f"cond_gate is the width of a gated condition (>= 0, and the field must have a condition); got {config.cond_gate} with cond_dim {config.cond_dim}")
+        if config.cond_planes < 0 or (config.cond_planes and (not config.cond_dim or config.encoding != "triplane")):
+            raise ValueError(f"cond_planes is a number of residual plane sets (>= 0) of a conditioned tri-plane field; got {config.cond_planes} with cond_dim {config.cond_dim} and encoding {config.encoding!r}")
+        if config.cond_planes and (config.cond_planes_resolution < 2 or any(not hi > lo for lo, hi in zip(config.cond_planes_min, config.cond_planes_max))):
+            raise ValueError(f"the residual planes need a resolution >= 2 and a box with max > min; got {config.cond_planes_resolution}, {config.cond_planes_min} .. {config.cond_planes_max}")
         if any(not 0 < s < config.depth for s in config.skips):
             raise ValueError(f"skip layers must lie in 1..depth-1; got {config.skips} for depth {config.depth}")
         if config.density_activation not in ("relu", "softplus"):
@@ -187,6 +208,14 @@ class RadianceField(nn.Module):
         if config.cond_gate:
             self.gate_code = nn.Linear(config.cond_dim, config.cond_gate, bias=False)
             self.gate = nn.Linear(self.position_encoding.out_dim, config.cond_gate)
+        self.plane_code: nn.Linear | None = None
+        self.cond_residual: nn.Parameter | None = None
+        if config.cond_planes:
+            r, k = config.cond_planes_resolution, config.cond_planes
+            self.plane_code = nn.Linear(config.cond_dim, k, bias=False)
+            self.cond_residual = nn.Parameter(torch.zeros(k, 3, config.grid_channels, r, r))
+            self.register_buffer("cond_box_min", torch.tensor(config.cond_planes_min, dtype=torch.float32))
+            self.register_buffer("cond_box_max", torch.tensor(config.cond_planes_max, dtype=torch.float32))
         layers = []
         for i in range(config.depth):
             fan_in = in_dim if i == 0 else config.width + (in_dim if i in config.skips else 0)
@@ -201,6 +230,32 @@ class RadianceField(nn.Module):
         else:
             self.direction_encoding = None
             self.rgb_head = nn.Linear(config.width, 3)
+
+    def _add_residual(self, h_in: Tensor, positions: Tensor, condition: Tensor | SampleRows) -> Tensor:
+        """``h_in (..., E)`` with the conditioned residual added to its finest level's features
+        (the last ``3 * grid_channels``; see ``cond_planes``). One condition ``(C,)`` blends the
+        planes once and samples the blend; per-ray or per-point ones sample every set and blend
+        at the points."""
+        assert self.plane_code is not None and self.cond_residual is not None
+        cfg = self.config
+        width = 3 * cfg.grid_channels
+        batch = positions.shape[:-1]
+        lo, hi = self.cond_box_min.to(h_in), self.cond_box_max.to(h_in)
+        grid = plane_grid(2.0 * (positions.reshape(-1, 3).to(h_in) - lo) / (hi - lo) - 1.0)
+        n = grid.shape[2]
+        residual = self.cond_residual.to(h_in)
+        if isinstance(condition, Tensor) and condition.dim() == 1:
+            w = self.plane_code(condition.to(h_in))  # (K,)
+            feats = sample_planes(torch.einsum("k,kpcij->pcij", w, residual), grid, "zeros").reshape(width, n)
+        else:
+            if isinstance(condition, SampleRows):
+                w = self.plane_code(condition.rows.to(h_in)).index_select(0, condition.ray.reshape(-1))  # (N, K)
+            else:
+                w = self.plane_code(condition.to(h_in).expand(*batch, cfg.cond_dim).reshape(n, cfg.cond_dim))
+            k = cfg.cond_planes
+            stacked = residual.transpose(0, 1).reshape(3, k * cfg.grid_channels, *residual.shape[-2:])
+            feats = torch.einsum("pkcn,nk->pcn", sample_planes(stacked, grid, "zeros").reshape(3, k, cfg.grid_channels, n), w).reshape(width, n)
+        return torch.cat([h_in[..., :-width], h_in[..., -width:] + feats.t().reshape(*batch, width)], dim=-1)
 
     def forward(self, positions: Tensor, directions: Tensor | None = None, condition: Tensor | None = None) -> FieldOutput:
         """Evaluate the field.
@@ -240,6 +295,8 @@ class RadianceField(nn.Module):
                 else:
                     code = self.gate_code(condition.to(h_in))
                 h_in = torch.cat([h_in, code * torch.sigmoid(self.gate(h_in))], dim=-1)
+            if self.cond_residual is not None:
+                h_in = self._add_residual(h_in, positions, condition if shared is None else shared)
             if shared is None:
                 h_in = torch.cat([h_in, condition.to(h_in).expand(*batch, cfg.cond_dim)], dim=-1)
         elif condition is not None:

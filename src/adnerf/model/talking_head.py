@@ -228,6 +228,13 @@ class ModelConfig:
         return ModelConfig(**d)
 
 
+MOUTH_PLANES_BOX = ((-0.5, -0.4, -0.5), (0.5, 0.6, 0.5))
+"""The box of the head's conditioned residual planes (``head_planes``) about the canonical mouth
+point, scene units ``(min, max)``: the lips and, below them (+y), the chin that drops with the jaw."""
+MOUTH_PLANES_RESOLUTION = 128
+"""Cells a side of those planes: about the head's finest planes' cell (256 over its ~2-unit box)."""
+
+
 def model_config(
     meta: SceneMeta,
     preset: Literal["fast", "paper"] = "fast",
@@ -241,6 +248,7 @@ def model_config(
     torso_motion: bool = False,
     head_width: int = 0,
     head_gate: int = 0,
+    head_planes: int = 0,
 ) -> ModelConfig:
     """The model for a dataset.
 
@@ -254,10 +262,14 @@ def model_config(
     ``head_width``: the width of the head's fine field's MLP (``"fast"``; 0: 64).
     ``head_gate``: the width of both head fields' gated condition (:attr:`FieldConfig.cond_gate
     <adnerf.fields.FieldConfig.cond_gate>`; 0: none).
+    ``head_planes``: residual plane sets of the head's fine field's conditioned features around
+    the mouth (:attr:`FieldConfig.cond_planes <adnerf.fields.FieldConfig.cond_planes>`, over
+    :data:`MOUTH_PLANES_BOX` about ``meta.mouth`` at :data:`MOUTH_PLANES_RESOLUTION` cells a side;
+    ``"fast"``; 0: none).
     ``torso_motion``: the torso layer follows the dataset's torso motion (:attr:`ModelConfig.torso_motion`).
     """
     config = replace(_preset_config(meta, preset, audio_dim, eye, mouth, signals), torso_motion=torso_motion)
-    fine: dict[str, int] = {}  # what the schedule changes of the head's fine field
+    fine: dict[str, object] = {}  # what the schedule changes of the head's fine field
     if head_grid:
         if config.head_fine.encoding != "triplane":
             raise ValueError(f"head_grid sets a tri-plane's resolution; the {preset!r} preset's head has none")
@@ -271,6 +283,14 @@ def model_config(
     if head_gate:
         fine["cond_gate"] = head_gate
         config = replace(config, head=replace(config.head, cond_gate=head_gate))
+    if head_planes:
+        if config.head_fine.encoding != "triplane":
+            raise ValueError(f"head_planes sets residual planes of a tri-plane field; the {preset!r} preset's head has none")
+        lo, hi = MOUTH_PLANES_BOX
+        fine["cond_planes"] = head_planes
+        fine["cond_planes_min"] = tuple(float(m + d) for m, d in zip(meta.mouth, lo))
+        fine["cond_planes_max"] = tuple(float(m + d) for m, d in zip(meta.mouth, hi))
+        fine["cond_planes_resolution"] = MOUTH_PLANES_RESOLUTION
     if fine:
         config = replace(config, head_fine=FieldConfig.from_dict({**config.head_fine.to_dict(), **fine}))
     if head_samples:

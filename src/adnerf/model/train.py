@@ -1059,7 +1059,7 @@ def train(
         # follows its motion where the dataset measured it and torso_motion asks for it.
         mcfg = model_config(
             ds.meta, tcfg.preset, eye=blinks_in(ds.eye, ds.meta.train), mouth=plan.used and tcfg.mouth_input == 1,  # type: ignore[arg-type]
-            head_samples=tcfg.head_samples, torso_samples=tcfg.torso_samples, head_grid=tcfg.head_grid, head_width=tcfg.head_width, head_gate=tcfg.head_gate, torso_motion=ds.torso is not None and tcfg.torso_motion == 1,
+            head_samples=tcfg.head_samples, torso_samples=tcfg.torso_samples, head_grid=tcfg.head_grid, head_width=tcfg.head_width, head_gate=tcfg.head_gate, head_planes=tcfg.head_planes, torso_motion=ds.torso is not None and tcfg.torso_motion == 1,
         )  # fmt: skip
     if mcfg.feature_dim != ds.meta.feature_dim:
         raise RunError(f"the run's model takes {mcfg.feature_dim}-d audio features but {dataset} has {ds.meta.feature_dim}-d ({ds.meta.feature_kind})")

@@ -82,6 +82,10 @@ class TrainConfig:
             <adnerf.fields.FieldConfig.cond_gate>`): a projection of the audio code that each
             point scales by a gate of its own position, so the code can act at the mouth alone;
             0: the code shifts every point of the head's first layer alike (AD-NeRF).
+        head_planes: Residual plane sets of the head's fine field around the mouth, blended by a
+            linear map of the condition and added to its finest features there
+            (:attr:`FieldConfig.cond_planes <adnerf.fields.FieldConfig.cond_planes>`; fast
+            preset); 0: the head's features do not depend on the audio code.
         torso_motion: 1: where the dataset has the torso's motion (``torso.npy``), the torso layer
             follows it (:attr:`ModelConfig.torso_motion <adnerf.model.talking_head.ModelConfig.torso_motion>`;
             ``docs/decisions.md``, *The torso follows its own motion*); 0: the torso's place is
@@ -132,6 +136,7 @@ class TrainConfig:
     head_grid: int = 0
     head_width: int = 0
     head_gate: int = 0
+    head_planes: int = 0
     pose_lr: float = 3e-4
     pose_refit: int = 0
     pose_start: float = 0.3
@@ -200,6 +205,8 @@ class TrainConfig:
             raise ValueError(f"lip_frames must be >= 1; got {self.lip_frames}")
         if self.mouth_input not in (0, 1):
             raise ValueError(f"mouth_input is 0 or 1; got {self.mouth_input}")
+        if self.head_planes < 0 or (self.head_planes and self.preset != "fast"):
+            raise ValueError(f"head_planes is a number of residual plane sets (>= 0; 0: none) of the fast preset's head; got {self.head_planes} with preset {self.preset!r}")
         if self.head_gate < 0:
             raise ValueError(f"head_gate is a width, >= 0 (0: no gated condition); got {self.head_gate}")
         if self.torso_motion not in (0, 1):
