@@ -91,8 +91,10 @@ class FieldConfig:
             only; 0: none): ``K`` sets of three planes ``(grid_channels, R, R)`` over the box
             ``cond_planes_min`` .. ``cond_planes_max``, blended by ``W c`` (``K`` weights, a
             linear map of the condition) and added to the finest level's features of the points
-            inside; zero outside the box (fading over its outermost cell). The planes start at
-            zero, so a new field is the unconditioned-features one.
+            inside the box, weighted by a box weight that falls from 1 to 0 over the outermost
+            cell to each face (zero outside: a plane alone would reach every point of the slab
+            its two coordinates span). The planes start at zero, so a new field is the
+            unconditioned-features one.
         cond_planes_min: Box of the residual planes (the field's space).
         cond_planes_max: Box of the residual planes.
         cond_planes_resolution: Cells a side ``R`` of each residual plane.
@@ -241,8 +243,14 @@ class RadianceField(nn.Module):
         width = 3 * cfg.grid_channels
         batch = positions.shape[:-1]
         lo, hi = self.cond_box_min.to(h_in), self.cond_box_max.to(h_in)
-        grid = plane_grid(2.0 * (positions.reshape(-1, 3).to(h_in) - lo) / (hi - lo) - 1.0)
+        p = 2.0 * (positions.reshape(-1, 3).to(h_in) - lo) / (hi - lo) - 1.0
+        grid = plane_grid(p)
         n = grid.shape[2]
+        # Each plane reads a point by two of its coordinates, so a point outside the box along the
+        # third would still read it: the box's own weight, 1 inside, falling to 0 over the
+        # outermost cell to each face, keeps the residual in the box (and continuous).
+        cell = 2.0 / (cfg.cond_planes_resolution - 1)
+        inside = ((1.0 - p.abs()) / cell).clamp(0.0, 1.0).prod(dim=-1)  # (N,)
         residual = self.cond_residual.to(h_in)
         if isinstance(condition, Tensor) and condition.dim() == 1:
             w = self.plane_code(condition.to(h_in))  # (K,)
@@ -255,7 +263,7 @@ class RadianceField(nn.Module):
             k = cfg.cond_planes
             stacked = residual.transpose(0, 1).reshape(3, k * cfg.grid_channels, *residual.shape[-2:])
             feats = torch.einsum("pkcn,nk->pcn", sample_planes(stacked, grid, "zeros").reshape(3, k, cfg.grid_channels, n), w).reshape(width, n)
-        return torch.cat([h_in[..., :-width], h_in[..., -width:] + feats.t().reshape(*batch, width)], dim=-1)
+        return torch.cat([h_in[..., :-width], h_in[..., -width:] + (feats * inside).t().reshape(*batch, width)], dim=-1)
 
     def forward(self, positions: Tensor, directions: Tensor | None = None, condition: Tensor | None = None) -> FieldOutput:
         """Evaluate the field.
