@@ -235,35 +235,44 @@ class RadianceField(nn.Module):
 
     def _add_residual(self, h_in: Tensor, positions: Tensor, condition: Tensor | SampleRows) -> Tensor:
         """``h_in (..., E)`` with the conditioned residual added to its finest level's features
-        (the last ``3 * grid_channels``; see ``cond_planes``). One condition ``(C,)`` blends the
-        planes once and samples the blend; per-ray or per-point ones sample every set and blend
-        at the points."""
+        (the last ``3 * grid_channels``; see ``cond_planes``) at the points inside the box (the
+        others are left as they are, and cost nothing). One condition ``(C,)`` blends the planes
+        once and samples the blend; per-ray or per-point ones sample every set and blend at the
+        points."""
         assert self.plane_code is not None and self.cond_residual is not None
         cfg = self.config
         width = 3 * cfg.grid_channels
-        batch = positions.shape[:-1]
         lo, hi = self.cond_box_min.to(h_in), self.cond_box_max.to(h_in)
         p = 2.0 * (positions.reshape(-1, 3).to(h_in) - lo) / (hi - lo) - 1.0
-        grid = plane_grid(p)
-        n = grid.shape[2]
+        n = p.shape[0]
         # Each plane reads a point by two of its coordinates, so a point outside the box along the
         # third would still read it: the box's own weight, 1 inside, falling to 0 over the
         # outermost cell to each face, keeps the residual in the box (and continuous).
         cell = 2.0 / (cfg.cond_planes_resolution - 1)
-        inside = ((1.0 - p.abs()) / cell).clamp(0.0, 1.0).prod(dim=-1)  # (N,)
+        box = ((1.0 - p.abs()) / cell).clamp(0.0, 1.0).prod(dim=-1)  # (N,)
+        idx = torch.nonzero(box > 0).reshape(-1)  # (M,)
+        if idx.numel() == 0:
+            return h_in
+        grid = plane_grid(p.index_select(0, idx))
+        m = idx.numel()
         residual = self.cond_residual.to(h_in)
         if isinstance(condition, Tensor) and condition.dim() == 1:
             w = self.plane_code(condition.to(h_in))  # (K,)
-            feats = sample_planes(torch.einsum("k,kpcij->pcij", w, residual), grid, "zeros").reshape(width, n)
+            feats = sample_planes(torch.einsum("k,kpcij->pcij", w, residual), grid, "zeros").reshape(width, m)
         else:
             if isinstance(condition, SampleRows):
-                w = self.plane_code(condition.rows.to(h_in)).index_select(0, condition.ray.reshape(-1))  # (N, K)
+                ray = condition.ray.reshape(-1).index_select(0, idx)
+                w = self.plane_code(condition.rows.to(h_in)).index_select(0, ray)  # (M, K)
             else:
-                w = self.plane_code(condition.to(h_in).expand(*batch, cfg.cond_dim).reshape(n, cfg.cond_dim))
+                rows = condition.to(h_in).expand(*positions.shape[:-1], cfg.cond_dim).reshape(n, cfg.cond_dim)
+                w = self.plane_code(rows.index_select(0, idx))
             k = cfg.cond_planes
             stacked = residual.transpose(0, 1).reshape(3, k * cfg.grid_channels, *residual.shape[-2:])
-            feats = torch.einsum("pkcn,nk->pcn", sample_planes(stacked, grid, "zeros").reshape(3, k, cfg.grid_channels, n), w).reshape(width, n)
-        return torch.cat([h_in[..., :-width], h_in[..., -width:] + (feats * inside).t().reshape(*batch, width)], dim=-1)
+            feats = torch.einsum("pkcn,nk->pcn", sample_planes(stacked, grid, "zeros").reshape(3, k, cfg.grid_channels, m), w).reshape(width, m)
+        flat = h_in.reshape(n, h_in.shape[-1])
+        # index_add with distinct indices: each point gets its own residual, in a fixed order.
+        last = flat[:, -width:].index_add(0, idx, (feats * box.index_select(0, idx)).t())
+        return torch.cat([flat[:, :-width], last], dim=-1).reshape(h_in.shape)
 
     def forward(self, positions: Tensor, directions: Tensor | None = None, condition: Tensor | None = None) -> FieldOutput:
         """Evaluate the field.
