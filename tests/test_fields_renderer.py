@@ -330,15 +330,18 @@ def test_residual_planes_start_at_zero_and_add_their_blend_to_the_finest_feature
     # planes' coordinates lie inside, so without the box weight they would read the residual.
     inside = torch.tensor([[0.0, 0.1, -0.2], [0.2, -0.2, 0.24]], dtype=torch.float64)
     outside = torch.tensor([[0.9, 0.0, 0.0], [0.0, -0.8, 0.1], [0.1, 0.2, 0.6]], dtype=torch.float64)
-    e = 3 * cfg.grid_levels * cfg.grid_channels
     width = 3 * cfg.grid_channels
     assert field.plane_code is not None
     expected = float((field.plane_code(c) @ values).detach())
     with torch.no_grad():
-        got_in = field._add_residual(torch.zeros(2, e, dtype=torch.float64), inside, c)
-        got_out = field._add_residual(torch.zeros(3, e, dtype=torch.float64), outside, c)
-    torch.testing.assert_close(got_in[:, -width:], torch.full((2, width), expected, dtype=torch.float64), rtol=0, atol=1e-12)
-    assert float(got_in[:, :-width].abs().max()) == 0.0 and float(got_out.abs().max()) == 0.0
+        got = field._residual(inside, c)
+        assert got is not None and field._residual(outside, c) is None
+        idx, residual = got
+        plain, added = field.position_encoding(inside), field.position_encoding(inside, finest=got)
+    assert idx.tolist() == [0, 1]
+    torch.testing.assert_close(residual, torch.full((width, 2), expected, dtype=torch.float64), rtol=0, atol=1e-12)
+    assert float((added - plain)[:, :-width].abs().max()) == 0.0  # the coarser levels as they were
+    torch.testing.assert_close((added - plain)[:, -width:], residual.t(), rtol=0, atol=1e-12)
 
 
 def test_residual_planes_blend_alike_for_one_condition_each_rays_and_each_points() -> None:
@@ -355,6 +358,15 @@ def test_residual_planes_blend_alike_for_one_condition_each_rays_and_each_points
     for other in (per_point, per_ray):
         torch.testing.assert_close(other.rgb, shared.rgb, rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(other.density, shared.density, rtol=1e-12, atol=1e-12)
+    # Rays of two frames (each frame's planes blended once, sampled at its points) against the
+    # same conditions given per point (every set sampled and blended at each point).
+    codes = torch.randn(2, 4, dtype=torch.float64)
+    of_ray = torch.tensor([1, 0, 0, 1, 1, 0])
+    with torch.no_grad():
+        by_frame = field(x, None, SampleRows(codes[of_ray], torch.arange(6)[:, None].expand(6, 5)))
+        by_point = field(x, None, codes[of_ray][:, None, :].expand(6, 5, 4))
+    torch.testing.assert_close(by_frame.density, by_point.density, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(by_frame.rgb, by_point.rgb, rtol=1e-12, atol=1e-12)
     # Two codes through the plain condition columns zeroed: the code acts through the planes alone.
     with torch.no_grad():
         field.trunk[0].weight[:, -4:] = 0.0
@@ -364,12 +376,18 @@ def test_residual_planes_blend_alike_for_one_condition_each_rays_and_each_points
 
 
 def test_residual_planes_pass_gradcheck_and_round_trip() -> None:
-    field = _planes_field(k=2, seed=4)
+    """Gradients through both ways of blending: two frames' codes copied to their rays (as
+    FrameCondition.of_rays does; fewer conditions than sets, each blended once), and distinct
+    rows per ray (every set sampled at every point), with respect to the points, the codes and
+    the residual planes."""
+    field = _planes_field(k=3, seed=4)
     x = (torch.rand(5, 3, dtype=torch.float64) * 0.8 - 0.4).requires_grad_()
-    rows = torch.randn(2, 4, dtype=torch.float64, requires_grad=True)
-    ray = torch.tensor([0, 1, 1, 0, 1])
-
+    ray = torch.tensor([0, 1, 1, 2, 3])
     residual = field.cond_residual.detach().clone().requires_grad_()
+    codes = torch.randn(2, 4, dtype=torch.float64, requires_grad=True)
+    of_ray = torch.tensor([0, 1, 1, 0])  # four rays of two frames
+    assert torch.autograd.gradcheck(lambda x, codes, r: _run_with_residual(field, x, codes[of_ray], ray, r), (x, codes, residual))
+    rows = torch.randn(4, 4, dtype=torch.float64, requires_grad=True)  # four distinct conditions >= 3 sets
     assert torch.autograd.gradcheck(lambda x, rows, r: _run_with_residual(field, x, rows, ray, r), (x, rows, residual))
     cfg = field.config
     assert FieldConfig.from_dict(cfg.to_dict()) == cfg
@@ -393,3 +411,16 @@ def _run_with_residual(field: RadianceField, x: torch.Tensor, rows: torch.Tensor
         del field.cond_residual
         field.cond_residual = saved
     return out.rgb, out.density
+
+
+def test_distinct_rows_group_equal_rows_and_never_two_different_ones() -> None:
+    """Rows copied from two codes group into two; two different rows that share the grouping's
+    projection (weights 1 and 2 here: [2, 0] and [0, 1] both project to 2) stay apart."""
+    from adnerf.fields import _distinct_rows
+
+    rows = torch.tensor([[1.0, 2.0], [3.0, 4.0], [1.0, 2.0]], dtype=torch.float64)
+    distinct, of_row = _distinct_rows(rows)
+    assert distinct.tolist() == [[1.0, 2.0], [3.0, 4.0]] and of_row.tolist() == [0, 1, 0]
+    clash = torch.tensor([[2.0, 0.0], [0.0, 1.0], [2.0, 0.0]], dtype=torch.float64)
+    distinct, of_row = _distinct_rows(clash)
+    torch.testing.assert_close(distinct[of_row], clash, rtol=0, atol=0)

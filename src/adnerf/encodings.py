@@ -127,8 +127,12 @@ class TriPlaneEncoding(Encoding):
         hi = self.aabb_max.to(x)
         return 2.0 * (x - lo) / (hi - lo) - 1.0
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Encode points ``(..., 3)`` to features ``(..., 3 * n_levels * channels)``."""
+    def forward(self, x: Tensor, finest: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        """Encode points ``(..., 3)`` to features ``(..., 3 * n_levels * channels)``.
+
+        ``finest``: ``(idx (M,), values (3 * channels, M))``, added to the finest level's features
+        of the points ``idx`` (distinct indices into the flattened points; a field's conditioned
+        residual)."""
         batch = x.shape[:-1]
         p = self.normalize(x.reshape(-1, 3))
         grid = plane_grid(p)
@@ -137,6 +141,9 @@ class TriPlaneEncoding(Encoding):
         # without a permute, and the (F, N) result is handed on transposed, as a view (the MLP's
         # matrix product reads transposed operands directly). Feature order: level, plane, channel.
         feats = [sample_planes(planes.to(x.dtype), grid, "border").reshape(3 * self.channels, n) for planes in self.planes]
+        if finest is not None:
+            idx, values = finest
+            feats[-1] = feats[-1].index_add(1, idx, values.to(feats[-1].dtype))
         return torch.cat(feats, dim=0).t().reshape(*batch, self.out_dim)
 
     def total_variation(self) -> Tensor:

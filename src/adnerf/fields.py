@@ -171,6 +171,22 @@ def fast_config(
     )
 
 
+def _distinct_rows(rows: Tensor) -> tuple[Tensor, Tensor]:
+    """Rows ``(R, C)`` as their distinct rows ``(U, C)`` (each the first of its equals, so its
+    gradient is the sum over its copies for whatever they were copied from) and each row's
+    index among them ``(R,)``. Rows are grouped by a projection and the grouping is checked
+    exactly; should two different rows share a projection, every row is its own."""
+    r = rows.shape[0]
+    key = rows.detach() @ torch.linspace(1.0, 2.0, rows.shape[1], dtype=rows.dtype, device=rows.device)
+    _, of_row = torch.unique(key, return_inverse=True)
+    first = torch.full((int(of_row.max()) + 1,), r, dtype=of_row.dtype, device=rows.device)
+    first = first.scatter_reduce(0, of_row, torch.arange(r, device=rows.device), "amin")
+    distinct = rows.index_select(0, first)
+    if not torch.equal(distinct.detach().index_select(0, of_row), rows.detach()):
+        return rows, torch.arange(r, device=rows.device)
+    return distinct, of_row
+
+
 def _make_encoding(cfg: FieldConfig) -> Encoding:
     if cfg.encoding == "pe":
         return PositionalEncoding(3, cfg.pe_frequencies)
@@ -233,17 +249,21 @@ class RadianceField(nn.Module):
             self.direction_encoding = None
             self.rgb_head = nn.Linear(config.width, 3)
 
-    def _add_residual(self, h_in: Tensor, positions: Tensor, condition: Tensor | SampleRows) -> Tensor:
-        """``h_in (..., E)`` with the conditioned residual added to its finest level's features
-        (the last ``3 * grid_channels``; see ``cond_planes``) at the points inside the box (the
-        others are left as they are, and cost nothing). One condition ``(C,)`` blends the planes
-        once and samples the blend; per-ray or per-point ones sample every set and blend at the
-        points."""
+    def _residual(self, positions: Tensor, condition: Tensor | SampleRows) -> tuple[Tensor, Tensor] | None:
+        """The conditioned residual of the finest features (see ``cond_planes``) at the points
+        inside the box: ``(idx (M,), values (3 * grid_channels, M))`` into the flattened points,
+        ``None`` when no point is inside (the others cost nothing).
+
+        The planes are blended once for each distinct condition when there are fewer of those
+        than sets (one frame's condition; a training step's rays, from a frame or two), and each
+        blend is sampled at its own points; otherwise every set is sampled at the points and
+        blended there."""
         assert self.plane_code is not None and self.cond_residual is not None
         cfg = self.config
         width = 3 * cfg.grid_channels
-        lo, hi = self.cond_box_min.to(h_in), self.cond_box_max.to(h_in)
-        p = 2.0 * (positions.reshape(-1, 3).to(h_in) - lo) / (hi - lo) - 1.0
+        dtype = positions.dtype
+        lo, hi = self.cond_box_min.to(dtype), self.cond_box_max.to(dtype)
+        p = 2.0 * (positions.reshape(-1, 3) - lo) / (hi - lo) - 1.0
         n = p.shape[0]
         # Each plane reads a point by two of its coordinates, so a point outside the box along the
         # third would still read it: the box's own weight, 1 inside, falling to 0 over the
@@ -252,27 +272,34 @@ class RadianceField(nn.Module):
         box = ((1.0 - p.abs()) / cell).clamp(0.0, 1.0).prod(dim=-1)  # (N,)
         idx = torch.nonzero(box > 0).reshape(-1)  # (M,)
         if idx.numel() == 0:
-            return h_in
+            return None
         grid = plane_grid(p.index_select(0, idx))
-        m = idx.numel()
-        residual = self.cond_residual.to(h_in)
-        if isinstance(condition, Tensor) and condition.dim() == 1:
-            w = self.plane_code(condition.to(h_in))  # (K,)
-            feats = sample_planes(torch.einsum("k,kpcij->pcij", w, residual), grid, "zeros").reshape(width, m)
+        # The conditions as rows (U, C) and each inside point's row (M,).
+        if isinstance(condition, SampleRows):
+            rows, of_ray = _distinct_rows(condition.rows.to(dtype))
+            which = of_ray.index_select(0, condition.ray.reshape(-1).index_select(0, idx))
+        elif condition.dim() == 1:
+            rows, which = condition.to(dtype)[None], torch.zeros_like(idx)
         else:
-            if isinstance(condition, SampleRows):
-                ray = condition.ray.reshape(-1).index_select(0, idx)
-                w = self.plane_code(condition.rows.to(h_in)).index_select(0, ray)  # (M, K)
+            rows = condition.to(dtype).expand(*positions.shape[:-1], cfg.cond_dim).reshape(n, cfg.cond_dim).index_select(0, idx)
+            which = torch.arange(idx.numel(), device=idx.device)
+        w = self.plane_code(rows)  # (U, K)
+        residual = self.cond_residual.to(dtype)
+        if rows.shape[0] < cfg.cond_planes:
+            blends = torch.einsum("uk,kpcij->upcij", w, residual)
+            if rows.shape[0] == 1:
+                feats = sample_planes(blends[0], grid, "zeros").reshape(width, -1)
             else:
-                rows = condition.to(h_in).expand(*positions.shape[:-1], cfg.cond_dim).reshape(n, cfg.cond_dim)
-                w = self.plane_code(rows.index_select(0, idx))
-            k = cfg.cond_planes
+                ats = [torch.nonzero(which == u).reshape(-1) for u in range(rows.shape[0])]
+                parts = [sample_planes(blends[u], grid.index_select(2, at), "zeros").reshape(width, -1) for u, at in enumerate(ats)]
+                # Back into the points' order: the inverse permutation of the groups' concatenation.
+                feats = torch.cat(parts, dim=1).index_select(1, torch.argsort(torch.cat(ats)))
+        else:
+            k, m = cfg.cond_planes, idx.numel()
             stacked = residual.transpose(0, 1).reshape(3, k * cfg.grid_channels, *residual.shape[-2:])
-            feats = torch.einsum("pkcn,nk->pcn", sample_planes(stacked, grid, "zeros").reshape(3, k, cfg.grid_channels, m), w).reshape(width, m)
-        flat = h_in.reshape(n, h_in.shape[-1])
-        # index_add with distinct indices: each point gets its own residual, in a fixed order.
-        last = flat[:, -width:].index_add(0, idx, (feats * box.index_select(0, idx)).t())
-        return torch.cat([flat[:, :-width], last], dim=-1).reshape(h_in.shape)
+            looked = sample_planes(stacked, grid, "zeros").reshape(3, k, cfg.grid_channels, m)
+            feats = torch.einsum("pkcn,nk->pcn", looked, w.index_select(0, which)).reshape(width, m)
+        return idx, feats * box.index_select(0, idx)
 
     def forward(self, positions: Tensor, directions: Tensor | None = None, condition: Tensor | None = None) -> FieldOutput:
         """Evaluate the field.
@@ -290,15 +317,20 @@ class RadianceField(nn.Module):
         """
         cfg = self.config
         batch = positions.shape[:-1]
-        h_in = self.position_encoding(positions)
-        # One condition for every point, or one per ray: folded into the layer biases.
-        shared: Tensor | SampleRows | None = None
         if cfg.cond_dim:
             if condition is None:
                 raise ValueError(f"this field is conditioned ({cfg.cond_dim}-d) but no condition was given")
             width = condition.rows.shape[-1] if isinstance(condition, SampleRows) else condition.shape[-1]
             if width != cfg.cond_dim:
                 raise ValueError(f"condition must have {cfg.cond_dim} features; got {width}")
+        if self.cond_residual is not None and condition is not None:
+            h_in = self.position_encoding(positions, finest=self._residual(positions, condition))
+        else:
+            h_in = self.position_encoding(positions)
+        # One condition for every point, or one per ray: folded into the layer biases.
+        shared: Tensor | SampleRows | None = None
+        if cfg.cond_dim:
+            assert condition is not None
             if isinstance(condition, SampleRows):
                 if condition.ray.shape != batch:
                     raise ValueError(f"the rows' ray index must have the points' shape {tuple(batch)}; got {tuple(condition.ray.shape)}")
@@ -312,8 +344,6 @@ class RadianceField(nn.Module):
                 else:
                     code = self.gate_code(condition.to(h_in))
                 h_in = torch.cat([h_in, code * torch.sigmoid(self.gate(h_in))], dim=-1)
-            if self.cond_residual is not None:
-                h_in = self._add_residual(h_in, positions, condition if shared is None else shared)
             if shared is None:
                 h_in = torch.cat([h_in, condition.to(h_in).expand(*batch, cfg.cond_dim)], dim=-1)
         elif condition is not None:
