@@ -132,7 +132,7 @@ def real_minute() -> list[str]:
     m256, m512 = load("real_minute.json"), load("real_minute_512.json")
     default, before = default_256(m256), lip_weight_row(m256, 0.0)
     same = m512["features"]["logmel_same_schedule"]
-    variants = (("mouth_rays", "mouth_rays 0.5"), ("mouth_input", "mouth_input 1"))  # two seeds each, on the default's schedule
+    variants = (("mouth_rays", "mouth_rays 0.5"), ("mouth_input", "mouth_input 1"), ("head_planes", "head_planes 4"))  # on the default's schedule, a seed or two each
     columns = [
         ("256 px, log-mel", {**m256["row"], **default}),
         ("256 px, log-mel, no mouth target", {**m256["row"], **before}),
@@ -141,7 +141,7 @@ def real_minute() -> list[str]:
         ("512 px, log-mel, the next column's schedule", same["row"]),
         ("512 px, 45 min, default (auto: logmel+phonemes)", m512["features"]["row"]),
         ("512 px, default, seed 1", m512["features"]["seed1"]["row"]),
-        *((f"512 px, default with {name}, seed {n}", m512[key][f"seed{n}"]["row"]) for key, name in variants for n in (0, 1)),
+        *((f"512 px, default with {name}, seed {n}", m512[key][f"seed{n}"]["row"]) for key, name in variants for n in (0, 1) if f"seed{n}" in m512[key]),
     ]
     out = [
         "## Real footage: the 50 s clip",
