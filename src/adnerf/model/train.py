@@ -75,6 +75,7 @@ from ..rng import Shard
 from .blinks import BLINKING, blinks_in
 from .conditions import SIGNALS, FrameCondition
 from .distributed import Ranks, init_ranks
+from .lip_patch import patch_loss, patch_pixels
 from .masks import BitRows
 from .pose_refine import PoseCorrections, batch_loss, composed, corrected_matrices, fit_corrections
 from .mouth_target import MouthProbe, mouth_targets, opening_signal
@@ -133,14 +134,15 @@ None)``; the mask is the opacity's target on the ``held`` rays (``None``: all of
 
 def _optimise(
     parts: list[Part], mask_weight: float, optimizer: torch.optim.Optimizer, ranks: Ranks = Ranks(), extra: "tuple[torch.Tensor, float, torch.optim.Optimizer] | None" = None,
-    also: Sequence[torch.optim.Optimizer] = (),
+    also: Sequence[torch.optim.Optimizer] = (), penalty: torch.Tensor | None = None,
 ) -> tuple[float, float]:  # fmt: skip
     """One step on the loss of every part (:func:`~adnerf.model.pose_refine.batch_loss`: the MSE of
     the coarse and fine colours plus ``mask_weight`` times the MSE of their opacities against the
     parsing mask, on the rays it holds), over the rays of every part together (each part's mean
     weighted by its share of the rays), plus ``weight`` times the loss of ``extra = (loss, weight,
-    its own optimizer)`` (the mouth target, whose read-out has its own optimizer); the optimizers
-    ``also`` (the pose corrections') step too. Returns ``(loss, fine colour MSE)``, averaged over
+    its own optimizer)`` (the mouth target, whose read-out has its own optimizer), plus ``penalty``
+    (a weighted term of the same parameters: the lip patch's); the optimizers ``also`` (the pose
+    corrections') step too. Returns ``(loss, fine colour MSE)``, averaged over
     the processes (whose gradients are averaged before the step)."""
     total = sum(len(target) for _, target, _, _ in parts)
     loss = fine_mse = 0.0
@@ -151,6 +153,8 @@ def _optimise(
     optimizers = [optimizer, *also] if extra is None else [optimizer, extra[2], *also]
     if extra is not None:
         loss = loss + extra[1] * extra[0]
+    if penalty is not None:
+        loss = loss + penalty
     for opt in optimizers:
         opt.zero_grad(set_to_none=True)
     if loss.requires_grad:  # False when empty-space skipping left no sample on any ray
@@ -415,6 +419,7 @@ class Trainer:
         # reads the mouth is given each frame's own; its read-out is the model's (rendering uses it).
         self.mouth_probe: MouthProbe | None = None
         self.lip_window: list[torch.Tensor] = []
+        self.patch_window: list[torch.Tensor] = []  # the lip patch's 1 - SSIM of each step since the last log line
         plan = mouth_plan(ds, tcfg) if plan is None else plan
         self.mouth_doc = plan.doc
         if plan.used:
@@ -434,6 +439,8 @@ class Trainer:
             self.pose_fix = PoseCorrections(ds.meta.n_frames).to(device)
             self.opt_pose = torch.optim.Adam(self.pose_fix.parameters(), lr=tcfg.pose_lr)
         self.pose_refits = 0  # refit passes done (pose_refit), kept in the checkpoint
+        if tcfg.lip_patch and ranks.world > 1:  # each process renders a part of a frame's rays, so no whole patch
+            raise RunError(f"lip_patch trains in one process; this run has {ranks.world}")
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.steps = {name: 0 for name in self.stages}  # finished iterations, by stage
         self.elapsed = {name: 0.0 for name in self.stages}  # seconds spent in steps, by stage
@@ -774,6 +781,8 @@ class Trainer:
                     row = {"stage": name, "step": step + 1, "loss": loss, "mse": mse, "psnr": psnr, "rays_per_s": rays_per_s, "samples_per_s": samples_per_s}
                     if self.lip_window:  # the mouth target's error (standardised units; 1: no better than the mean mouth)
                         row["lip"], self.lip_window = float(torch.stack(self.lip_window).mean()), []
+                    if self.patch_window:  # the lip patch's 1 - SSIM, unweighted
+                        row["lip_patch"], self.patch_window = float(torch.stack(self.patch_window).mean()), []
                     self.log({**row, "elapsed": self.elapsed[name]})
                 if (step + 1) % self.tcfg.checkpoint_every == 0 or step + 1 == iters:
                     self.save()
@@ -836,8 +845,38 @@ class Trainer:
         """Stage-1 pixels of ``frame``: ``n`` of those whose ray crosses the head box, the
         ``mouth_rays`` share of them around the mouth. The box's pixels, kept from the frame's
         first draw, are those of its tracked pose: under its learnt correction they would depend
-        on when the frame was first drawn, and a resumed run would draw other rays."""
-        return self.pick_among(self.head_box_pixels(frame, self.ds.head_pose(frame, device=self.device)), self.mouth_pixels(pose), self.tcfg.mouth_rays, n)
+        on when the frame was first drawn, and a resumed run would draw other rays. With
+        ``lip_patch``, the last ``lip_patch ** 2`` of the mouth's rays are a patch
+        (:meth:`lip_patch_pixels`)."""
+        pool = self.head_box_pixels(frame, self.ds.head_pose(frame, device=self.device))
+        size = self.tcfg.lip_patch
+        if not size:
+            return self.pick_among(pool, self.mouth_pixels(pose), self.tcfg.mouth_rays, n)
+        n_mouth = int(round(self.tcfg.mouth_rays * n))
+        return torch.cat([self.pick_rays(pool, n - n_mouth), self.pick_rays(self.mouth_pixels(pose), n_mouth - size * size), self.lip_patch_pixels(pose)])
+
+    def lip_patch_pixels(self, pose: HeadPose) -> torch.Tensor:
+        """A ``lip_patch`` x ``lip_patch`` patch of pixels, row-major, at a random place in the
+        square around the mouth (:func:`~adnerf.model.lip_patch.patch_pixels`)."""
+        uv, depth = (x.detach() for x in self.ds.meta.mouth_in_image(pose))  # a learning pose has gradients
+        side = MOUTH_CROP * self.ds.meta.intrinsics[0] / float(depth)
+        return patch_pixels((float(uv[0]), float(uv[1])), side, self.tcfg.lip_patch, self.ds.meta.width, self.ds.meta.height, self.generator, self.device)
+
+    def lip_patch_penalty(self, groups: list[tuple[int, torch.Tensor, FrameCondition]], part: Part) -> torch.Tensor | None:
+        """``lip_patch_weight`` times the patches' ``1 - SSIM`` (:func:`~adnerf.model.lip_patch.patch_loss`,
+        fine colours, or coarse without a fine pass) of a stage-1 step whose first ``frames`` groups
+        are its frames' rays, each ending with its patch (:meth:`head_rays`), in the order
+        :meth:`batch_of` renders them; ``None`` without ``lip_patch``."""
+        size = self.tcfg.lip_patch
+        if not size:
+            return None
+        out, target = part[0], part[1]
+        ends = torch.cumsum(torch.tensor([len(pix) for _, pix, _ in groups]), 0)[: self.tcfg.frames]
+        at = (ends[:, None] - size * size + torch.arange(size * size)[None, :]).reshape(-1).to(target.device)
+        rgb = (out.fine if out.fine is not None else out.coarse).rgb
+        loss = patch_loss(rgb[at], target[at], size)
+        self.patch_window.append(loss.detach())  # the log's "lip_patch"
+        return self.tcfg.lip_patch_weight * loss
 
     def frozen_head(self, pix: torch.Tensor, cond: FrameCondition) -> Layer:
         """The stage-1 head along pixels ``pix`` ``(R,)`` under ``cond`` (one frame's, or each
@@ -941,7 +980,8 @@ class Trainer:
                 groups.append(eye_batch)
             part = part_of(self.batch_of(groups))
             also = [self.opt_pose] if self.poses_learning else []
-            return _optimise([part], tcfg.mask_weight, opt, self.ranks, self.mouth_loss() if stage.trains_audio else None, also)
+            penalty = self.lip_patch_penalty(groups, part) if stage.layer == "head" else None
+            return _optimise([part], tcfg.mask_weight, opt, self.ranks, self.mouth_loss() if stage.trains_audio else None, also, penalty)
 
         try:
             self._loop(stage, step_fn, max_steps)

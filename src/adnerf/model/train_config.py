@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass, fields, replace
 
 from ..fields import check_config_keys
+from .lip_patch import MIN_PATCH
 from .talking_head import AMP_MODES
 
 __all__ = ["PRESETS", "TrainConfig"]
@@ -50,6 +51,12 @@ class TrainConfig:
         lip_min_signal: The mouth target is used only when the clip's audio predicts the opening
             of its training frames at least this well (cross-validated correlation,
             :func:`~adnerf.model.mouth_target.opening_signal`); -1 uses it always.
+        lip_patch: Side, in rays, of a square patch about the mouth that each stage-1 frame's
+            rays end with, in place of as many of its random mouth rays, scored by its
+            structural similarity to the frame beside the squared error
+            (:mod:`adnerf.model.lip_patch`); 0 (the default): none. At least
+            ``lip_patch.MIN_PATCH``, and its square at most the mouth's share of a frame's rays.
+        lip_patch_weight: Weight of the patch's ``1 - SSIM`` in stage 1's loss.
         mouth_input: 1: where the mouth target is used, the head also reads the mouth's opening and
             width (each training frame's own; when rendering, the read-out of the audio code;
             :attr:`ModelConfig.mouth_dim <adnerf.model.talking_head.ModelConfig.mouth_dim>`); 0 (the
@@ -120,6 +127,8 @@ class TrainConfig:
     lip_weight: float = 0.01
     lip_frames: int = 64
     lip_min_signal: float = 0.2
+    lip_patch: int = 0
+    lip_patch_weight: float = 0.03
     mouth_input: int = 0
     torso_motion: int = 1
     torso_person_rays: float = 0.5
@@ -203,6 +212,13 @@ class TrainConfig:
             raise ValueError("mask_weight and lip_weight must be >= 0")
         if self.lip_frames < 1:
             raise ValueError(f"lip_frames must be >= 1; got {self.lip_frames}")
+        if self.lip_patch or self.lip_patch_weight < 0:
+            mouth = int(round(self.mouth_rays * (self.rays // self.frames)))
+            if self.lip_patch_weight < 0 or self.lip_patch < MIN_PATCH or self.lip_patch**2 > mouth:
+                raise ValueError(
+                    f"lip_patch is 0 or a side of at least {MIN_PATCH} rays whose square fits the {mouth} mouth rays of a frame"
+                    f" (mouth_rays x rays / frames), and lip_patch_weight >= 0; got {self.lip_patch} and {self.lip_patch_weight}"
+                )
         if self.mouth_input not in (0, 1):
             raise ValueError(f"mouth_input is 0 or 1; got {self.mouth_input}")
         if self.head_planes < 0 or (self.head_planes and self.preset != "fast"):
