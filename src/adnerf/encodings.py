@@ -62,6 +62,13 @@ class PositionalEncoding(Encoding):
         return torch.cat(parts, dim=-1)
 
 
+def box_to_unit(x: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """Map points ``(..., 3)`` of the box ``[lo, hi]`` (corners ``(3,)``) to ``[-1, 1]^3``,
+    in the points' dtype."""
+    lo, hi = lo.to(x), hi.to(x)
+    return 2.0 * (x - lo) / (hi - lo) - 1.0
+
+
 def plane_grid(p: Tensor) -> Tensor:
     """Points ``(N, 3)`` in ``[-1, 1]^3`` as ``grid_sample`` coordinates of the xy, xz and yz
     planes, ``(3, 1, N, 2)`` (``(x, y)`` = (width, height) order)."""
@@ -123,9 +130,7 @@ class TriPlaneEncoding(Encoding):
 
     def normalize(self, x: Tensor) -> Tensor:
         """Map points ``(..., 3)`` from the box to ``[-1, 1]^3``."""
-        lo = self.aabb_min.to(x)
-        hi = self.aabb_max.to(x)
-        return 2.0 * (x - lo) / (hi - lo) - 1.0
+        return box_to_unit(x, self.aabb_min, self.aabb_max)
 
     def forward(self, x: Tensor, finest: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """Encode points ``(..., 3)`` to features ``(..., 3 * n_levels * channels)``.

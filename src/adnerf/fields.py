@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .encodings import Encoding, PositionalEncoding, TriPlaneEncoding, plane_grid, sample_planes
+from .encodings import Encoding, PositionalEncoding, TriPlaneEncoding, box_to_unit, plane_grid, sample_planes
 
 __all__ = ["FieldConfig", "FieldOutput", "RadianceField", "SampleRows", "fast_config", "paper_config"]
 
@@ -262,8 +262,7 @@ class RadianceField(nn.Module):
         cfg = self.config
         width = 3 * cfg.grid_channels
         dtype = positions.dtype
-        lo, hi = self.cond_box_min.to(dtype), self.cond_box_max.to(dtype)
-        p = 2.0 * (positions.reshape(-1, 3) - lo) / (hi - lo) - 1.0
+        p = box_to_unit(positions.reshape(-1, 3), self.cond_box_min, self.cond_box_max)
         n = p.shape[0]
         # Each plane reads a point by two of its coordinates, so a point outside the box along the
         # third would still read it: the box's own weight, 1 inside, falling to 0 over the
@@ -323,7 +322,8 @@ class RadianceField(nn.Module):
             width = condition.rows.shape[-1] if isinstance(condition, SampleRows) else condition.shape[-1]
             if width != cfg.cond_dim:
                 raise ValueError(f"condition must have {cfg.cond_dim} features; got {width}")
-        if self.cond_residual is not None and condition is not None:
+        if self.cond_residual is not None:  # cond_planes needs cond_dim, so the condition is there
+            assert condition is not None
             h_in = self.position_encoding(positions, finest=self._residual(positions, condition))
         else:
             h_in = self.position_encoding(positions)
