@@ -139,6 +139,12 @@ def read_run_doc(root: Path) -> dict:
     return RunFolder(root).doc()
 
 
+def run_configs(doc: dict) -> tuple[ModelConfig, TrainConfig]:
+    """The model and the training schedule of a run's ``run.json`` (:func:`read_run_doc`); a
+    schedule key added after the run was written takes the value it trained with."""
+    return ModelConfig.from_dict(doc["model"]), TrainConfig.from_stored(doc["train"])
+
+
 def stored_config(root: str | Path) -> TrainConfig:
     """The training schedule stored in a run folder's ``run.json``."""
     return TrainConfig.from_stored(read_run_doc(Path(root))["train"])
@@ -198,8 +204,8 @@ def load_run(root: str | Path, device: str | torch.device = "cpu") -> Run:
     doc = read_run_doc(root)
     ckpt_path = RunFolder(root).checkpoint
     ckpt = read_checkpoint(ckpt_path, device)
-    model = TalkingHead(ModelConfig.from_dict(doc["model"])).to(device)
-    tcfg = TrainConfig.from_stored(doc["train"])
+    mcfg, tcfg = run_configs(doc)
+    model = TalkingHead(mcfg).to(device)
     steps = {name: stage_step(ckpt, name) for name in ckpt["stages"]}
     load_model_state(model, ckpt["model"], ckpt_path, scheduled_smoothing(tcfg, steps.get("head", 0)))
     model.eval()

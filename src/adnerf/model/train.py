@@ -88,6 +88,7 @@ from .run_folder import (
     load_run,
     read_checkpoint,
     read_run_doc,
+    run_configs,
     resumed_config,
     save_atomic,
     scheduled_smoothing,
@@ -1081,8 +1082,8 @@ def train(
         if not files.is_run():
             raise RunError(f"{root}: nothing to resume (no {files.run_json.name}); drop --resume to start a new run")
         doc = read_run_doc(root)
-        mcfg = ModelConfig.from_dict(doc["model"])
-        tcfg = resumed_config(TrainConfig.from_stored(doc["train"]), config)
+        mcfg, stored = run_configs(doc)
+        tcfg = resumed_config(stored, config)
         check_same_dataset(doc, ds, dataset, root)
         if files.checkpoint.exists():
             ckpt = read_checkpoint(files.checkpoint, device)
@@ -1148,7 +1149,7 @@ def pose_refit_seconds(run_dir: str | Path, dataset: str | Path, *, device: str 
         raise RunError(f"{root}: no checkpoint to time a pose refit with")
     ds = load_dataset(dataset, truth=False)
     doc = read_run_doc(root)
-    mcfg, tcfg = ModelConfig.from_dict(doc["model"]), TrainConfig.from_stored(doc["train"])
+    mcfg, tcfg = run_configs(doc)
     if tcfg.pose_lr <= 0:
         raise RunError(f"{root}: its run learns no pose corrections (pose_lr 0), so there is no refit to time")
     trainer = Trainer(root, ds, mcfg, tcfg, device, False, Ranks(), mouth_plan(ds, tcfg))
