@@ -858,7 +858,7 @@ class Trainer:
 
     def lip_patch_pixels(self, pose: HeadPose) -> torch.Tensor:
         """A ``lip_patch`` x ``lip_patch`` patch of pixels, row-major, at a random place in the
-        square around the mouth (:func:`~adnerf.model.lip_patch.patch_pixels`)."""
+        central half of the square around the mouth (:func:`~adnerf.model.lip_patch.patch_pixels`)."""
         uv, depth = (x.detach() for x in self.ds.meta.mouth_in_image(pose))  # a learning pose has gradients
         side = MOUTH_CROP * self.ds.meta.intrinsics[0] / float(depth)
         return patch_pixels((float(uv[0]), float(uv[1])), side, self.tcfg.lip_patch, self.ds.meta.width, self.ds.meta.height, self.generator, self.device)
