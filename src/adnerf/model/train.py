@@ -440,8 +440,6 @@ class Trainer:
             self.pose_fix = PoseCorrections(ds.meta.n_frames).to(device)
             self.opt_pose = torch.optim.Adam(self.pose_fix.parameters(), lr=tcfg.pose_lr)
         self.pose_refits = 0  # refit passes done (pose_refit), kept in the checkpoint
-        if tcfg.lip_patch and ranks.world > 1:  # each process renders a part of a frame's rays, so no whole patch
-            raise RunError(f"lip_patch trains in one process; this run has {ranks.world}")
         self.generator = torch.Generator(device="cpu").manual_seed(tcfg.seed)
         self.steps = {name: 0 for name in self.stages}  # finished iterations, by stage
         self.elapsed = {name: 0.0 for name in self.stages}  # seconds spent in steps, by stage
@@ -700,12 +698,17 @@ class Trainer:
             self.boxed[frame] = True
         return torch.nonzero(self.in_head_box.row(frame))[:, 0]
 
-    def mouth_pixels(self, pose) -> torch.Tensor:
-        """Flat indices of the pixels in the square of side ``MOUTH_CROP`` units around the mouth."""
+    def mouth_square(self, pose) -> tuple[float, float, float]:  # noqa: ANN001
+        """The square of side ``MOUTH_CROP`` units around the mouth under ``pose``: its centre
+        ``(u, v)`` and side, in pixels."""
         uv, depth = (x.detach() for x in self.ds.meta.mouth_in_image(pose))  # a learning pose has gradients
-        half = 0.5 * MOUTH_CROP * self.ds.meta.intrinsics[0] / float(depth)
+        return float(uv[0]), float(uv[1]), MOUTH_CROP * self.ds.meta.intrinsics[0] / float(depth)
+
+    def mouth_pixels(self, pose) -> torch.Tensor:  # noqa: ANN001
+        """Flat indices of the pixels in the square around the mouth (:meth:`mouth_square`)."""
+        u, v, side = self.mouth_square(pose)
         cols, rows = self.pixel_centres
-        inside = ((cols - uv[0]).abs() <= half) & ((rows - uv[1]).abs() <= half)
+        inside = ((cols - u).abs() <= 0.5 * side) & ((rows - v).abs() <= 0.5 * side)
         return self.pixel_index[inside]
 
     def code(self, frame: int) -> torch.Tensor:
@@ -859,9 +862,8 @@ class Trainer:
     def lip_patch_pixels(self, pose: HeadPose) -> torch.Tensor:
         """A ``lip_patch`` x ``lip_patch`` patch of pixels, row-major, at a random place in the
         central half of the square around the mouth (:func:`~adnerf.model.lip_patch.patch_pixels`)."""
-        uv, depth = (x.detach() for x in self.ds.meta.mouth_in_image(pose))  # a learning pose has gradients
-        side = MOUTH_CROP * self.ds.meta.intrinsics[0] / float(depth)
-        return patch_pixels((float(uv[0]), float(uv[1])), side, self.tcfg.lip_patch, self.ds.meta.width, self.ds.meta.height, self.generator, self.device)
+        u, v, side = self.mouth_square(pose)
+        return patch_pixels((u, v), side, self.tcfg.lip_patch, self.ds.meta.width, self.ds.meta.height, self.generator, self.device)
 
     def lip_patch_penalty(self, groups: list[tuple[int, torch.Tensor, FrameCondition]], part: Part) -> torch.Tensor | None:
         """``lip_patch_weight`` times the patches' ``1 - SSIM`` (:func:`~adnerf.model.lip_patch.patch_loss`,
@@ -1109,6 +1111,8 @@ def train(
     done = {s.name: stage_step(ckpt, s.name) if ckpt else 0 for s in stages}
     for k, s in enumerate(chosen):  # a stage drawing a layer frozen needs the stage that trains it finished, or run first
         check_frozen_trained(s, stages, done, before=chosen[:k])
+    if tcfg.lip_patch and ranks.world > 1:  # each process renders a part of a frame's rays, so no whole patch
+        raise RunError(f"lip_patch trains in one process; this run has {ranks.world}")
     if (tcfg.rays // tcfg.frames) % ranks.world:
         raise RunError(f"{ranks.world} processes must split the {tcfg.rays // tcfg.frames} rays of each frame in a batch evenly; choose rays divisible by {ranks.world * tcfg.frames}")
     # One writer per run folder: a second training of it (another terminal, a restarted job)

@@ -212,13 +212,11 @@ class TrainConfig:
             raise ValueError("mask_weight and lip_weight must be >= 0")
         if self.lip_frames < 1:
             raise ValueError(f"lip_frames must be >= 1; got {self.lip_frames}")
-        if self.lip_patch or self.lip_patch_weight < 0:
-            mouth = int(round(self.mouth_rays * (self.rays // self.frames)))
-            if self.lip_patch_weight < 0 or self.lip_patch < MIN_PATCH or self.lip_patch**2 > mouth:
-                raise ValueError(
-                    f"lip_patch is 0 or a side of at least {MIN_PATCH} rays whose square fits the {mouth} mouth rays of a frame"
-                    f" (mouth_rays x rays / frames), and lip_patch_weight >= 0; got {self.lip_patch} and {self.lip_patch_weight}"
-                )
+        if self.lip_patch_weight < 0:
+            raise ValueError(f"lip_patch_weight must be >= 0; got {self.lip_patch_weight}")
+        mouth = int(round(self.mouth_rays * (self.rays // self.frames)))
+        if self.lip_patch and (self.lip_patch < MIN_PATCH or self.lip_patch**2 > mouth):
+            raise ValueError(f"lip_patch is 0 or a side of at least {MIN_PATCH} rays whose square fits the {mouth} mouth rays of a frame (mouth_rays x rays / frames); got {self.lip_patch}")
         if self.mouth_input not in (0, 1):
             raise ValueError(f"mouth_input is 0 or 1; got {self.mouth_input}")
         if self.head_planes < 0 or (self.head_planes and self.preset != "fast"):
