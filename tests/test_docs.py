@@ -54,6 +54,20 @@ def test_a_result_edited_without_regenerating_is_caught(tmp_path: Path) -> None:
     assert make_docs.main(["--check"]) == 0
 
 
+def test_the_amplitude_table_reads_a_shrunk_opening() -> None:
+    """A render whose opening is the truth's, shrunk about its mean by 0.5 and moved down 1 px,
+    reads correlation 1, std ratio and slope 0.5, gap -1 px; stretched back to slope 0.8 its
+    deviations are 0.8 of the truth's, so its RMSE is that of 0.2 of them, 1 px down."""
+    make_docs = _make_docs()
+    true = [0.0, 2.0, 4.0, 10.0, 6.0, 3.0]
+    mean = sum(true) / len(true)
+    render = [mean - 1.0 + 0.5 * (t - mean) for t in true]
+    corr, square, std_ratio, slope, gap, rmse, stretch = make_docs.opening_amplitude({"mouth_opening_true_px": true, "mouth_opening_render_px": render})
+    assert (corr, square, std_ratio, slope, gap) == ("1.00", "1.00", "0.50", "0.50", "-1.00")
+    sd = (sum((t - mean) ** 2 for t in true) / len(true)) ** 0.5
+    assert rmse == f"{(1 + (0.5 * sd) ** 2) ** 0.5:.2f}"
+    assert stretch == f"1.60 / {(1 + (0.2 * sd) ** 2) ** 0.5:.2f}"
+
 def test_the_readme_is_a_short_guide() -> None:
     lines = README.read_text().splitlines()
     assert len(lines) <= 250, f"README.md has {len(lines)} lines; move detail into docs/"
