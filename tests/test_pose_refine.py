@@ -14,7 +14,7 @@ import torch
 from adnerf.evaluation.evaluate import evaluate_run
 from adnerf.evaluation.fitted_poses import judged_poses
 from adnerf.formats.dataset import load_dataset
-from adnerf.model.pose_refine import PoseCorrections, _inside, composed, corrected, corrected_matrices, fit_corrections
+from adnerf.model.pose_refine import PoseCorrections, _inside, composed, corrected, corrected_matrices, fit_corrections, fit_frames
 from adnerf.model.render_clip import dataset_track, frame_setup, frame_signals, render_frames
 from adnerf.model.run_folder import load_run
 from adnerf.model.train import TrainConfig, train
@@ -208,25 +208,57 @@ def test_composed_corrections_move_a_pose_as_the_two_in_turn() -> None:
 
 def _fake_fit(calls: list, move: np.ndarray):
     def fit(model, camera, plate, images, labels, poses, codes, **kw):  # noqa: ANN001, ANN202, ARG001
-        calls.append({"n": len(images), "poses": poses.copy(), "exclude": kw["exclude"], "steps": kw["steps"]})
+        calls.append({"n": len(images), "images": images, "poses": poses.copy(), "codes": codes, "exclude": kw["exclude"], "steps": kw.get("steps"), "seed": kw["seed"], "eye": kw["eye"], "signals": kw["signals"]})
         return np.tile(move, (len(images), 1))
 
     return fit
 
+
+def test_fit_frames_fits_a_chunk_at_a_time_without_its_mouth_box(scene: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seven frames in chunks of three: three fits of 3, 3 and 1 frames, each given its own
+    frames, poses, codes, eye and signals, the mouth boxes under its start poses, and its seed
+    (``seed + lo``); their moves come back in the frames' order."""
+    import adnerf.model.pose_refine as refine_module
+
+    ds = load_dataset(scene, truth=False)
+    frames = np.array([9, 2, 5, 11, 0, 7, 3])
+    start = ds.poses[frames].astype(np.float64)
+    start[:, 0, 3] += np.linspace(-0.05, 0.05, len(frames))  # distinct starts: the boxes follow them, not the dataset's poses
+    codes = torch.arange(len(frames) * 2, dtype=torch.float32).reshape(len(frames), 2)
+    eye, signals = np.linspace(0.0, 1.0, len(frames)), {"torso": np.arange(len(frames) * 3.0).reshape(-1, 3)}
+    calls: list = []
+
+    def fit(model, camera, plate, images, labels, poses, codes, **kw):  # noqa: ANN001, ANN202, ARG001
+        calls.append({"images": images, "poses": poses, "codes": codes, **kw})
+        return np.repeat(codes[:, :1].numpy().astype(np.float64), 6, axis=1)  # each frame's move names its code
+
+    monkeypatch.setattr(refine_module, "fit_corrections", fit)
+    move = fit_frames(None, None, None, ds, frames, start, codes, eye=eye, signals=signals, seed=10, chunk=3, steps=5)
+    assert [len(c["images"]) for c in calls] == [3, 3, 1] and [c["seed"] for c in calls] == [10, 13, 16] and all(c["steps"] == 5 for c in calls)
+    np.testing.assert_array_equal(move[:, 0], codes[:, 0].numpy())
+    boxes = ds.meta.mouth_boxes(HeadPose.from_matrix(torch.as_tensor(start)))
+    for k, c in enumerate(calls):
+        part = slice(3 * k, 3 * k + 3)
+        np.testing.assert_array_equal(c["images"], ds.frames[frames[part]])
+        np.testing.assert_array_equal(c["poses"], start[part])
+        np.testing.assert_array_equal(c["exclude"], boxes[part])
+        np.testing.assert_array_equal(c["eye"], eye[part])
+        np.testing.assert_array_equal(c["signals"]["torso"], signals["torso"][part])
+    assert not np.array_equal(boxes, ds.meta.mouth_boxes(HeadPose.from_matrix(torch.as_tensor(ds.poses[frames].astype(np.float64)))))
 
 def test_pose_refits_compose_the_fits_move_at_their_steps_and_resume_once(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``pose_refit`` 2 over 8 head iterations: passes before step 4 and at the stage's end, each
     composing the fit's move onto every training frame's correction (pose_start 1: the
     corrections learn nothing else), and a run cut after the first pass and resumed makes the
     second only."""
-    import adnerf.model.train as train_module
+    import adnerf.model.pose_refine as refine_module
 
     ds = load_dataset(scene)
     move = np.array([0.01, -0.02, 0.005, 0.003, 0.0, -0.004])
     cfg = TrainConfig(head_iters=8, torso_iters=0, rays=64, log_every=1, checkpoint_every=1, pose_start=1.0, pose_refit=2)
     for name, cut in (("straight", None), ("cut", 5)):
         calls: list = []
-        monkeypatch.setattr(train_module, "fit_corrections", _fake_fit(calls, move))
+        monkeypatch.setattr(refine_module, "fit_corrections", _fake_fit(calls, move))
         root = tmp_path / name
         train(scene, root, config=cfg, progress=False, max_steps=cut)
         if cut is not None:

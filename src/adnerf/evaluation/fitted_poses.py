@@ -5,7 +5,7 @@ an input measured from the footage, as its audio is. The tracker's poses carry a
 degree that drifts slowly (``docs/decisions.md``, *The head poses are fitted to the pixels*);
 ``"fitted"`` ends the tracking as training ends it for the training frames: each frame's pose is
 the tracked one moved by a correction that aligns the trained head to the frame's rigid part
-(:func:`~adnerf.model.pose_refine.fit_corrections`: the inside of the head label, without its
+(:func:`~adnerf.model.pose_refine.fit_frames`: the inside of the head label, without its
 outline or the mouth box, which the mouth metrics read). Training frames of the run's own dataset take the correction training learnt for them.
 """
 
@@ -16,12 +16,10 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..formats.dataset import MOUTH_CROP, TalkingHeadDataset
-from ..model.pose_refine import corrected_matrices, fit_corrections
+from ..formats.dataset import TalkingHeadDataset
+from ..model.pose_refine import corrected_matrices, fit_frames
 from ..model.render_clip import frame_setup, frame_signals
 from ..model.run_folder import Run
-from ..pose import HeadPose
-from .boxes import mouth_boxes_at
 
 __all__ = ["POSE_CHOICES", "judged_poses"]
 
@@ -62,10 +60,8 @@ def judged_poses(run: Run, ds: TalkingHeadDataset, frames: Sequence[int], poses:
         with torch.no_grad():  # the codes the render makes: over the frames in their order
             codes = model.frame_codes(torch.as_tensor(ds.features[frames], device=dev))[torch.as_tensor(todo, device=dev)]
         picked = frames[todo]
-        boxes = mouth_boxes_at(ds.meta, HeadPose.from_matrix(torch.as_tensor(tracked[todo])), MOUTH_CROP)
         eye = ds.eye[picked] if ds.eye is not None and model.reads_eye else None
-        delta[todo] = fit_corrections(
-            model, camera, plate, ds.frames[picked], ds.parsing[picked], tracked[todo], codes, eye=eye, signals=frame_signals(run, ds, picked),
-            exclude=boxes, amp=run.train_config.amp, seed=run.train_config.seed, progress=progress,
+        delta[todo] = fit_frames(
+            model, camera, plate, ds, picked, tracked[todo], codes, eye=eye, signals=frame_signals(run, ds, picked), seed=run.train_config.seed, amp=run.train_config.amp, progress=progress,
         )  # fmt: skip
     return corrected_matrices(tracked, delta)

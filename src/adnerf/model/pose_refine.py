@@ -28,14 +28,17 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from ..cameras import Camera
-from ..formats.dataset import LABEL_HEAD
+from ..formats.dataset import LABEL_HEAD, MOUTH_CROP, TalkingHeadDataset
 from ..pose import HeadPose
 from .conditions import FrameCondition
 
-__all__ = ["POSE_DOF", "PoseCorrections", "batch_loss", "composed", "corrected", "corrected_matrices", "fit_corrections"]
+__all__ = ["POSE_DOF", "PoseCorrections", "batch_loss", "composed", "corrected", "corrected_matrices", "fit_corrections", "fit_frames"]
 
 POSE_DOF = 6
 """Numbers of a correction: axis-angle ``omega`` (3, radians), then ``tau`` (3, scene units)."""
+
+FIT_CHUNK = 256
+"""Frames :func:`fit_frames` copies out of a dataset at a time."""
 
 
 def corrected(pose: HeadPose, delta: Tensor) -> HeadPose:
@@ -251,3 +254,58 @@ def fit_corrections(
             p.requires_grad_(flag)
         model.train(was_training)
     return out
+
+
+def fit_frames(
+    model,  # noqa: ANN001 (a TalkingHead)
+    camera: Camera,
+    plate: Tensor,
+    ds: TalkingHeadDataset,
+    frames: np.ndarray,
+    start: np.ndarray,
+    codes: Tensor,
+    *,
+    eye: np.ndarray | None = None,
+    signals: Mapping[str, np.ndarray] | None = None,
+    seed: int = 0,
+    chunk: int = FIT_CHUNK,
+    bar: tqdm | None = None,
+    **fit,  # noqa: ANN003 (fit_corrections' keywords)
+) -> np.ndarray:
+    """:func:`fit_corrections` of frames ``frames`` of ``ds`` from poses ``start``, each without
+    the box of side ``MOUTH_CROP`` about its mouth under its start pose: what training's pose
+    refit and the judged poses of held-out frames both fit.
+
+    The frames are fitted ``chunk`` at a time, so a clip's frames and labels are not copied out of
+    the dataset at once; chunk ``k``'s draws are seeded ``seed + k * chunk``.
+
+    Args:
+        model: The trained :class:`~adnerf.model.talking_head.TalkingHead` (not changed).
+        camera: The static camera.
+        plate: Background ``(H, W, 3)`` float in ``[0, 1]``, on the model's device.
+        ds: The dataset whose frames, labels and mouth points are read.
+        frames: Frame indices ``(N,)`` of ``ds``.
+        start: Their head poses ``(N, 4, 4)`` to fit from.
+        codes: Their audio codes ``(N, audio_dim)``.
+        eye: Their eye openness ``(N,)`` (``None``: open).
+        signals: Their frame signals ``(N, k)`` by name.
+        seed: Seed of the first chunk's draws.
+        chunk: Frames per call of :func:`fit_corrections`.
+        bar: A progress bar advanced by each chunk's frames.
+        **fit: Further keywords of :func:`fit_corrections` (steps, rays, group, lr, amp, progress).
+
+    Returns:
+        Corrections ``(N, 6)`` float64 from ``start``.
+    """
+    frames = np.asarray(frames, dtype=np.int64)
+    boxes = ds.meta.mouth_boxes(HeadPose.from_matrix(torch.as_tensor(start)), MOUTH_CROP)
+    move = np.zeros((len(frames), POSE_DOF), dtype=np.float64)
+    for lo in range(0, len(frames), chunk):
+        part = slice(lo, lo + chunk)
+        move[part] = fit_corrections(
+            model, camera, plate, ds.frames[frames[part]], ds.parsing[frames[part]], start[part], codes[part], eye=None if eye is None else eye[part],
+            signals=None if signals is None else {name: values[part] for name, values in signals.items()}, exclude=boxes[part], seed=seed + lo, **fit,
+        )  # fmt: skip
+        if bar is not None:
+            bar.update(len(frames[part]))
+    return move

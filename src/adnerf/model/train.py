@@ -77,7 +77,7 @@ from .conditions import SIGNALS, FrameCondition
 from .distributed import Ranks, init_ranks
 from .lip_patch import patch_loss, patch_pixels
 from .masks import BitRows
-from .pose_refine import PoseCorrections, batch_loss, composed, corrected_matrices, fit_corrections
+from .pose_refine import PoseCorrections, batch_loss, composed, corrected_matrices, fit_frames
 from .mouth_target import MouthProbe, mouth_targets, opening_signal
 from .run_folder import (
     RESUMABLE,
@@ -618,7 +618,7 @@ class Trainer:
     def refit_poses(self, frames: Sequence[int] | None = None) -> float:
         """One pose refit pass (``TrainConfig.pose_refit``): every training frame's correction
         (or those of ``frames``) is fitted again with the field frozen, from the learnt one on
-        (:func:`~adnerf.model.pose_refine.fit_corrections` on the inside of the head label, outside
+        (:func:`~adnerf.model.pose_refine.fit_frames` on the inside of the head label, outside
         the mouth box, under the frame's own audio code and signals), and the fit's move is
         composed onto it. Learnt in stage 1 a few draws a frame, the corrections stay far from
         the pixels' best pose; the refit aligns them at once. The corrections' Adam moments are
@@ -637,21 +637,15 @@ class Trainer:
             codes = model.frame_codes(self.windows)[torch.as_tensor(frames, device=dev)]
             learnt = self.pose_fix.delta.detach()[torch.as_tensor(frames, device=dev)]
         start = corrected_matrices(np.asarray(self.ds.poses[frames], dtype=np.float64), learnt.cpu().numpy())
-        boxes = self.ds.meta.mouth_boxes(HeadPose.from_matrix(torch.as_tensor(start)), MOUTH_CROP)
         eye = None if self.eye is None else self.eye.cpu().numpy()[frames]
         signals = {name: values.cpu().numpy()[frames] for name, values in self.tracks.items()}
         plate = self.plate.reshape(self.ds.meta.height, self.ds.meta.width, 3)
-        move = np.zeros((len(frames), 6), dtype=np.float64)
         bar = tqdm(total=len(frames), desc=f"refit poses ({self.pose_refits + 1})", unit="frame", disable=not self.progress, dynamic_ncols=True)
-        try:  # a chunk of frames at a time: a clip's frames are not copied out of the dataset at once
-            for lo in range(0, len(frames), REFIT_CHUNK):
-                part = slice(lo, lo + REFIT_CHUNK)
-                move[part] = fit_corrections(
-                    model, self.camera, plate, self.ds.frames[frames[part]], self.ds.parsing[frames[part]], start[part], codes[part],
-                    eye=None if eye is None else eye[part], signals={name: values[part] for name, values in signals.items()}, exclude=boxes[part],
-                    steps=REFIT_STEPS, rays=REFIT_RAYS, group=REFIT_GROUP, lr=1e-3, amp=self.tcfg.amp, seed=self.tcfg.seed + 1 + self.pose_refits + lo,
-                )  # fmt: skip
-                bar.update(len(frames[part]))
+        try:
+            move = fit_frames(
+                model, self.camera, plate, self.ds, frames, start, codes, eye=eye, signals=signals, seed=self.tcfg.seed + 1 + self.pose_refits, chunk=REFIT_CHUNK, bar=bar,
+                steps=REFIT_STEPS, rays=REFIT_RAYS, group=REFIT_GROUP, lr=1e-3, amp=self.tcfg.amp,
+            )  # fmt: skip
         finally:
             bar.close()
         with torch.no_grad():
