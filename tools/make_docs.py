@@ -151,7 +151,7 @@ def real_minute() -> list[str]:
     m256, m512 = load("real_minute.json"), load("real_minute_512.json")
     default, before = default_256(m256), lip_weight_row(m256, 0.0)
     same = m512["features"]["logmel_same_schedule"]
-    variants = (("mouth_rays", "mouth_rays 0.5"), ("mouth_input", "mouth_input 1"), ("head_planes", "head_planes 4"), ("lip_patch", "lip_patch 16"))  # on the default's schedule, a seed or two each
+    variants = (("mouth_rays", "mouth_rays 0.5"), ("mouth_input", "mouth_input 1"), ("head_planes", "head_planes 4"), ("lip_patch", "lip_patch 16"), ("lip_patch_weight_0.01", "lip_patch 16 at weight 0.01"))  # on the default's schedule, a seed or two each
     columns = [
         ("256 px, log-mel", {**m256["row"], **default}),
         ("256 px, log-mel, no mouth target", {**m256["row"], **before}),
