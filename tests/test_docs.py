@@ -68,6 +68,7 @@ def test_the_amplitude_table_reads_a_shrunk_opening() -> None:
     assert rmse == f"{(1 + (0.5 * sd) ** 2) ** 0.5:.2f}"
     assert stretch == f"1.60 / {(1 + (0.2 * sd) ** 2) ** 0.5:.2f}"
 
+
 def test_the_readme_is_a_short_guide() -> None:
     lines = README.read_text().splitlines()
     assert len(lines) <= 250, f"README.md has {len(lines)} lines; move detail into docs/"

@@ -208,7 +208,7 @@ def test_composed_corrections_move_a_pose_as_the_two_in_turn() -> None:
 
 def _fake_fit(calls: list, move: np.ndarray):
     def fit(model, camera, plate, images, labels, poses, codes, **kw):  # noqa: ANN001, ANN202, ARG001
-        calls.append({"n": len(images), "images": images, "poses": poses.copy(), "codes": codes, "exclude": kw["exclude"], "steps": kw.get("steps"), "seed": kw["seed"], "eye": kw["eye"], "signals": kw["signals"]})
+        calls.append({"n": len(images), "poses": poses.copy(), "exclude": kw["exclude"], "steps": kw["steps"]})
         return np.tile(move, (len(images), 1))
 
     return fit
@@ -245,6 +245,7 @@ def test_fit_frames_fits_a_chunk_at_a_time_without_its_mouth_box(scene: Path, mo
         np.testing.assert_array_equal(c["eye"], eye[part])
         np.testing.assert_array_equal(c["signals"]["torso"], signals["torso"][part])
     assert not np.array_equal(boxes, ds.meta.mouth_boxes(HeadPose.from_matrix(torch.as_tensor(ds.poses[frames].astype(np.float64)))))
+
 
 def test_pose_refits_compose_the_fits_move_at_their_steps_and_resume_once(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``pose_refit`` 2 over 8 head iterations: passes before step 4 and at the stage's end, each
