@@ -52,6 +52,7 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from ..atomic import atomic_path
+from ..audio.features import BUILTIN_KINDS
 from ..compositor import Composite, Layer, over
 from ..lock import FolderLock
 from ..memory import require
@@ -72,6 +73,7 @@ from ..formats.run_folder import RunFolder
 from ..pose import HeadPose
 from ..renderer import RenderOutput
 from ..rng import Shard
+from .audio_jitter import jittered_windows
 from .blinks import BLINKING, blinks_in
 from .conditions import SIGNALS, FrameCondition
 from .distributed import Ranks, init_ranks
@@ -377,6 +379,10 @@ class Trainer:
         self.labels = torch.as_tensor(ds.parsing, device=device).reshape(ds.meta.n_frames, -1)
         self.plate = torch.as_tensor(ds.background, device=device).reshape(-1, 3).float() / 255.0
         self.windows = torch.as_tensor(ds.features, device=device)
+        # Stage 1 may read each step's windows moved in time (TrainConfig.audio_jitter): every
+        # shift's windows, made once; `step_windows` are the ones the step's codes read.
+        self.jittered = jittered_windows(ds, tcfg.audio_jitter, device) if tcfg.audio_jitter else None
+        self.step_windows = self.windows
         # The frame pools stay on the CPU, as the generator does: reading a drawn frame back from
         # a GPU would wait for the work queued there at every draw.
         self.train_frames = torch.as_tensor(ds.meta.train)
@@ -710,8 +716,9 @@ class Trainer:
         return self.codes([frame])[0]
 
     def codes(self, frames: list[int]) -> torch.Tensor:
-        """The audio codes ``(len(frames), audio_dim)`` of ``frames``, in one audio network pass."""
-        return self.model.frame_codes(self.windows, frames)
+        """The audio codes ``(len(frames), audio_dim)`` of ``frames``, in one audio network pass,
+        from the step's windows (moved in time in a stage-1 step under ``audio_jitter``)."""
+        return self.model.frame_codes(self.step_windows, frames)
 
     def condition(self, frame: int, code: torch.Tensor, pose, speech: int | None = None) -> FrameCondition:  # noqa: ANN001
         """Frame ``frame``'s condition: its audio code, head pose and (when the head reads them) eye
@@ -730,7 +737,7 @@ class Trainer:
             return None
         k = torch.randint(len(self.lip_pool), (self.tcfg.lip_frames,), generator=self.generator)
         frames = self.lip_pool[k].to(self.device)
-        loss = self.mouth_probe.loss(self.model.frame_codes(self.windows, frames), self.mouth[frames])
+        loss = self.mouth_probe.loss(self.model.frame_codes(self.step_windows, frames), self.mouth[frames])
         self.lip_window.append(loss.detach())  # the log's "lip": the window's mean (read when a line is written)
         return loss, self.tcfg.lip_weight, self.opt_probe
 
@@ -969,6 +976,8 @@ class Trainer:
             sched.set(step)
             if stage.trains_audio:
                 self.model.set_audio_smoothing(step >= tcfg.att_start * stage.iters)
+                if self.jittered is not None:  # the step's audio, moved by a drawn shift
+                    self.step_windows = self.jittered[int(torch.randint(len(self.jittered), (1,), generator=self.generator))]
             # The head's stage also aligns the training frames' poses to it, from pose_start on.
             self.poses_learning = self.pose_fix is not None and stage.layer == "head" and step >= tcfg.pose_start * stage.iters
             groups = self.step_frames(stage.layer, step, stage.iters, rays_of, codes_of)
@@ -984,6 +993,7 @@ class Trainer:
             self._loop(stage, step_fn, max_steps)
         finally:
             self.poses_learning = False
+            self.step_windows = self.windows
         if refits and self.steps[stage.name] >= stage.iters and self.pose_refits < refits:
             t0 = time.perf_counter()
             while self.pose_refits < refits:
@@ -1105,6 +1115,8 @@ def train(
     done = {s.name: stage_step(ckpt, s.name) if ckpt else 0 for s in stages}
     for k, s in enumerate(chosen):  # a stage drawing a layer frozen needs the stage that trains it finished, or run first
         check_frozen_trained(s, stages, done, before=chosen[:k])
+    if tcfg.audio_jitter and ds.meta.feature_kind not in BUILTIN_KINDS:  # before hours of work
+        raise RunError(f"audio_jitter cuts the windows again from the dataset's audio, which adnerf can do for {', '.join(BUILTIN_KINDS)} features; {dataset} has {ds.meta.feature_kind!r} (set audio_jitter to 0)")
     if tcfg.lip_patch and ranks.world > 1:  # each process renders a part of a frame's rays, so no whole patch
         raise RunError(f"lip_patch trains in one process; this run has {ranks.world}")
     if (tcfg.rays // tcfg.frames) % ranks.world:

@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass, fields, replace
 
 from ..fields import check_config_keys
+from .audio_jitter import MAX_AUDIO_JITTER
 from .lip_patch import MIN_PATCH
 from .talking_head import AMP_MODES
 
@@ -57,6 +58,14 @@ class TrainConfig:
             (:mod:`adnerf.model.lip_patch`); 0 (the default): none. At least
             ``lip_patch.MIN_PATCH``, and its square at most the mouth's share of a frame's rays.
         lip_patch_weight: Weight of the patch's ``1 - SSIM`` in stage 1's loss.
+        audio_jitter: Largest shift, in 20 ms speech features, of the audio a stage-1 step's
+            codes read: each step draws a shift in ``[-audio_jitter, audio_jitter]`` and every
+            frame of the step (its rays', its eye batch's and the mouth target's) reads its
+            feature window moved that far in time (:mod:`adnerf.model.audio_jitter`); the torso
+            stage, the pose refits and renders read the windows as they are. A mouth does not
+            follow its sound to the 20 ms, so the encoder learns codes that a slightly earlier or
+            later window also gives. 0 (the default): none. Needs features adnerf computes from
+            the dataset's audio (``logmel``, ``phonemes``, ``logmel+phonemes``).
         mouth_input: 1: where the mouth target is used, the head also reads the mouth's opening and
             width (each training frame's own; when rendering, the read-out of the audio code;
             :attr:`ModelConfig.mouth_dim <adnerf.model.talking_head.ModelConfig.mouth_dim>`); 0 (the
@@ -129,6 +138,7 @@ class TrainConfig:
     lip_min_signal: float = 0.2
     lip_patch: int = 0
     lip_patch_weight: float = 0.03
+    audio_jitter: int = 0
     mouth_input: int = 0
     torso_motion: int = 1
     torso_person_rays: float = 0.5
@@ -217,6 +227,8 @@ class TrainConfig:
         mouth = int(round(self.mouth_rays * (self.rays // self.frames)))
         if self.lip_patch and (self.lip_patch < MIN_PATCH or self.lip_patch**2 > mouth):
             raise ValueError(f"lip_patch is 0 or a side of at least {MIN_PATCH} rays whose square fits the {mouth} mouth rays of a frame (mouth_rays x rays / frames); got {self.lip_patch}")
+        if not 0 <= self.audio_jitter <= MAX_AUDIO_JITTER:
+            raise ValueError(f"audio_jitter is a shift in speech features, 0 to {MAX_AUDIO_JITTER} (half a window); got {self.audio_jitter}")
         if self.mouth_input not in (0, 1):
             raise ValueError(f"mouth_input is 0 or 1; got {self.mouth_input}")
         if self.head_planes < 0 or (self.head_planes and self.preset != "fast"):
