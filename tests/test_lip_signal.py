@@ -1,5 +1,6 @@
 """The lip-signal ceiling: ridge maps against a slow reference, folds that never see their test
-block, a mouth predictable from its audio against one that is not, and the sign of the mouth's delay."""
+block, a mouth predictable from its audio against one that is not, the sign of the mouth's delay,
+and training's audio encoder, which finds a mouth the ridge map misses and none in a shuffled one."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import numpy as np
 import pytest
 
 from adnerf.audio.features import voiced_loudness
+from adnerf.cli import main
+from adnerf.evaluation.encoder_signal import encoder_signal
 from adnerf.evaluation.landmark_metrics import INNER_PAIRS
 from adnerf.evaluation.lip_signal import audio_windows, blocked_folds, dataset_lip_signal, lip_signal, ridge_fit_predict
 from adnerf.formats.dataset import DatasetFolder, load_dataset
@@ -106,13 +109,74 @@ def test_a_datasets_lip_signal_from_features_computed_again(tmp_path: Path) -> N
     again = audio_windows(data, "logmel")
     assert again.shape == stored.shape and np.median(np.abs(again - stored)) < 1e-3 and np.abs(again - stored).max() < 1.0
     assert np.median(np.abs(again[1:] - stored[:-1])) > 0.1  # what a frame's offset would read
-    jaw = load_dataset(data).truth.jaw
-    landmarks = np.zeros((len(jaw), 68, 2))
-    landmarks[:, [b for _, b in INNER_PAIRS], 1] = 1.0 + 10.0 * jaw[:, None]  # the inner lips open as the jaw
-    np.save(DatasetFolder(data).landmarks, landmarks)
+    _with_jaw_landmarks(data)
     own = dataset_lip_signal(data, blocks=3, guard=2)
     assert own.ridge_cv_corr > 0.5  # its jaw is its loudness
     both = dataset_lip_signal(data, "logmel+phonemes", blocks=3, guard=2)
     assert both.frames == own.frames and both.ridge_cv_corr != own.ridge_cv_corr
     with pytest.raises(ValueError, match="features must be one of"):
         dataset_lip_signal(data, "wav2vec2")
+
+
+def _with_jaw_landmarks(data: Path) -> None:
+    """Landmarks whose inner lips open with the synthetic scene's jaw."""
+    jaw = load_dataset(data).truth.jaw
+    landmarks = np.zeros((len(jaw), 68, 2))
+    landmarks[:, [b for _, b in INNER_PAIRS], 1] = 1.0 + 10.0 * jaw[:, None]
+    np.save(DatasetFolder(data).landmarks, landmarks)
+
+
+def test_a_datasets_encoder_signal_beside_its_ridge_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``encoder_epochs``: the encoder's held-out figure joins the ridge figures, which stay as
+    they are without it; ``--encoder`` prints it and refuses a negative count."""
+    data = synthesize(tmp_path / "data", SynthConfig(seconds=3.0, size=32, voice="formant", seed=5))  # its held-out jaw moves
+    _with_jaw_landmarks(data)
+    plain = dataset_lip_signal(data, blocks=3, guard=2)
+    assert np.isnan(plain.encoder_tail_corr) and plain.to_dict()["encoder_tail_corr"] is None  # not asked for
+    epochs: list[int] = []
+    enc = dataset_lip_signal(data, blocks=3, guard=2, encoder_epochs=2, encoder_seeds=2, progress=epochs.append)
+    assert len(epochs) == 4 and np.isfinite(enc.encoder_tail_corr) and np.isfinite(enc.encoder_tail_single_corr)
+    assert (enc.ridge_tail_corr, enc.ridge_cv_corr) == (plain.ridge_tail_corr, plain.ridge_cv_corr)
+    moved = dataset_lip_signal(data, blocks=3, guard=2, encoder_epochs=2, encoder_seeds=2, encoder_jitter=1)
+    assert np.isfinite(moved.encoder_tail_corr) and moved.encoder_tail_corr != enc.encoder_tail_corr  # trained on moved windows
+    assert main(["lip-signal", str(data), "--encoder", "-1"]) == 2
+    assert main(["lip-signal", str(data), "--encoder-jitter", "1"]) == 2  # without --encoder
+    assert main(["lip-signal", str(data), "--encoder", "1", "--encoder-jitter", "99"]) == 2
+    assert main(["lip-signal", str(data), "--blocks", "3", "--guard", "2", "--encoder", "1"]) == 0
+    assert "encoder -> opening, held-out corr (3 nets)" in capsys.readouterr().out
+
+
+def test_the_encoder_finds_a_mouth_the_ridge_map_misses_and_none_in_a_shuffled_one() -> None:
+    rng = np.random.default_rng(4)
+    n = 600
+    windows = _windows(n, rng)
+    opening = np.abs(windows[:, 8, 2]) + 0.1 * rng.normal(size=n)  # opens for a feature's either sign
+    split = {"train": range(500), "test": range(500, n)}
+    found = encoder_signal(windows, opening, **split, epochs=30, seeds=2, lr=3e-3)
+    ridge = lip_signal(windows, opening, **split).ridge_tail_corr
+    assert found.ensemble_corr > 0.8 and found.single_corr > 0.7 and ridge < 0.5
+    assert (found.seeds, found.epochs) == (2, 30)
+    shuffled = encoder_signal(windows, rng.permutation(opening), **split, epochs=30, seeds=2, lr=3e-3)
+    assert abs(shuffled.ensemble_corr) < 0.35  # what training on the held-out frames would not give
+    again = encoder_signal(windows, opening, **split, epochs=30, seeds=2, lr=3e-3)
+    assert again == found  # seeded
+
+
+def test_the_encoder_refuses_what_it_cannot_measure() -> None:
+    rng = np.random.default_rng(5)
+    windows, opening = _windows(40, rng), rng.normal(size=40)
+    split = {"train": range(30), "test": range(30, 40)}
+    with pytest.raises(ValueError, match=r"windows \(N, 16, D\)"):
+        encoder_signal(windows[:, :8], opening, **split)
+    with pytest.raises(ValueError, match="one opening per window"):
+        encoder_signal(windows, opening[:-1], **split)
+    with pytest.raises(ValueError, match="finite"):
+        encoder_signal(windows, np.where(np.arange(40) == 3, np.nan, opening), **split)
+    with pytest.raises(ValueError, match="positive"):
+        encoder_signal(windows, opening, **split, epochs=0)
+    with pytest.raises(ValueError, match="two training and two held-out"):
+        encoder_signal(windows, opening, train=range(30), test=[35])
+    with pytest.raises(ValueError, match="does not vary"):
+        encoder_signal(windows, np.ones(40), **split)
+    with pytest.raises(ValueError, match="moved windows"):
+        encoder_signal(windows, opening, **split, moved=windows[None, :-1])

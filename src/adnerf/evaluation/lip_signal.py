@@ -25,8 +25,8 @@ frames, positive when the mouth moves *after* the sound (as :func:`~adnerf.evalu
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -58,6 +58,11 @@ class LipSignal:
         ridge_cv_corr: Mean over the blocks of the blocked cross-validated correlation (a block
             whose opening never changes has no correlation and is left out of the mean).
         ridge_cv_blocks: The per-block correlations, in clip order.
+        encoder_tail_corr: Correlation over the held-out frames of the opening predicted by
+            training's audio encoder trained on the training frames' opening alone, an ensemble
+            of networks (:func:`~adnerf.evaluation.encoder_signal.encoder_signal`); ``nan``
+            unless asked for (it trains networks: seconds to minutes).
+        encoder_tail_single_corr: The same, the mean of the single networks' correlations.
     """
 
     frames: int
@@ -67,6 +72,8 @@ class LipSignal:
     ridge_tail_corr: float
     ridge_cv_corr: float
     ridge_cv_blocks: list[float]
+    encoder_tail_corr: float = float("nan")
+    encoder_tail_single_corr: float = float("nan")
 
     def to_dict(self) -> dict:
         """A JSON-serialisable dict (``nan`` as ``None``)."""
@@ -156,7 +163,16 @@ def _windows_at_frames(audio: AudioTrack, meta: SceneMeta, features: str) -> np.
     return speech_windows(audio, np.arange(meta.n_frames) / meta.fps, FeatureSpec(kind=features))  # type: ignore[arg-type]
 
 
-def dataset_lip_signal(root: str | Path, features: str | None = None, **kwargs: object) -> LipSignal:
+def dataset_lip_signal(
+    root: str | Path,
+    features: str | None = None,
+    *,
+    encoder_epochs: int = 0,
+    encoder_seeds: int = 3,
+    encoder_jitter: int = 0,
+    progress: Callable[[int], None] | None = None,
+    **kwargs: object,
+) -> LipSignal:
     """:func:`lip_signal` of a dataset folder: its ``features.npy``, the opening of its
     ``landmarks.npy``, the voiced loudness of its ``audio.wav`` at the frame times, and its
     train / test split (``meta.json``). Preprocessing interpolates the landmarks of frames where
@@ -168,6 +184,13 @@ def dataset_lip_signal(root: str | Path, features: str | None = None, **kwargs: 
             are computed from ``audio.wav`` at the frame times ``i / fps`` (as preprocessing
             placed them) instead of reading ``features.npy``: which features carry this clip's
             mouth, without preprocessing it again. ``None``: the dataset's own.
+        encoder_epochs: With a train / test split, also train ``encoder_seeds`` audio encoders for
+            this many epochs on the training frames' opening and score them on the held-out
+            frames (``encoder_tail_corr``); 0: not.
+        encoder_seeds: Networks of that ensemble.
+        encoder_jitter: Train them on windows moved by up to this many features either way, a
+            shift drawn per sample (what ``TrainConfig.audio_jitter`` does in training); 0: not.
+        progress: Called with 1 after each epoch of each network.
         **kwargs: :func:`lip_signal`'s settings.
 
     Raises:
@@ -190,4 +213,16 @@ def dataset_lip_signal(root: str | Path, features: str | None = None, **kwargs: 
         raise DatasetError(f"{root}: landmarks {landmarks.shape} and features {windows.shape} do not match its {meta.n_frames} frames")
     loud = voiced_loudness(np.asarray(audio.samples, np.float64), audio.sample_rate, np.arange(meta.n_frames) / meta.fps)
     split = {"train": list(meta.train), "test": list(meta.test)} if meta.train and meta.test else {}
-    return lip_signal(windows, mouth_opening(landmarks), loudness=loud, **split, **kwargs)  # type: ignore[arg-type]
+    opening = mouth_opening(landmarks)
+    signal = lip_signal(windows, opening, loudness=loud, **split, **kwargs)  # type: ignore[arg-type]
+    if encoder_epochs > 0 and split:
+        from .encoder_signal import encoder_signal
+
+        moved = None
+        if encoder_jitter:
+            from ..model.audio_jitter import moved_windows
+
+            moved = moved_windows(root, meta if features is None else replace(meta, feature_kind=features), windows, encoder_jitter)
+        enc = encoder_signal(windows, opening, split["train"], split["test"], epochs=encoder_epochs, seeds=encoder_seeds, moved=moved, progress=progress)
+        signal = replace(signal, encoder_tail_corr=enc.ensemble_corr, encoder_tail_single_corr=enc.single_corr)
+    return signal
