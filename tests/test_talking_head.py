@@ -296,7 +296,8 @@ def test_training_holds_a_clip_as_its_uint8_frames_and_labels(tiny: Path, tiny_r
     # The tensors the trainer holds with a frame axis are those stores and nothing else.
     n = ds.meta.n_frames
     per_frame = {name for name, v in vars(tr).items() if isinstance(v, torch.Tensor) and v.ndim and v.shape[0] == n and v.numel() > n}
-    assert per_frame <= {"frames", "labels", "windows"}, per_frame
+    assert per_frame <= {"frames", "labels", "windows", "step_windows"}, per_frame
+    assert tr.step_windows is tr.windows and tr.jittered is None  # the step's windows are the stored ones (no audio_jitter)
     assert tr.windows.numel() * tr.windows.element_size() // n == 16 * ds.meta.feature_dim * 4  # the audio windows: no pixels
     # Stage 2 trains without a pass over the clip first and writes no head cache.
     train(tiny, tmp_path / "resumed", config=replace(TINY_TRAIN, head_iters=1, torso_iters=2), progress=False)
